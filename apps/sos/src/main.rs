@@ -1,0 +1,2 @@
+//! `sos`: the nerf-sos command line.
+fn main() {}

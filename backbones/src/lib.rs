@@ -1,0 +1,1 @@
+//! 2D feature extractors (teachers) for nerf-sos.

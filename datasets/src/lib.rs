@@ -1,0 +1,1 @@
+//! Dataset adapters and the synthetic scene generator of nerf-sos.

@@ -1,0 +1,1 @@
+//! Pair miners and contrastive losses of nerf-sos.

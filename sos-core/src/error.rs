@@ -1,0 +1,77 @@
+//! Error types of the core. Every message names the file or key at fault and what to do.
+
+use std::path::PathBuf;
+
+/// A configuration file could not be read or is invalid.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("cannot read config {path}: {source}")]
+    Read {
+        /// File that failed.
+        path: PathBuf,
+        /// Underlying I/O error.
+        source: std::io::Error,
+    },
+    /// TOML syntax, an unknown kind, an unknown key or a value of the wrong type.
+    #[error("invalid config {path}: {message}")]
+    Parse {
+        /// File that failed.
+        path: PathBuf,
+        /// What serde/toml reported, including the key and the allowed values.
+        message: String,
+    },
+    /// A value parsed but is out of its allowed range.
+    #[error("invalid config {path}: key `{key}`: {reason}")]
+    Invalid {
+        /// File that failed (may be empty for configs built in code).
+        path: PathBuf,
+        /// Dotted key, e.g. `field.resolution`.
+        key: String,
+        /// What is allowed.
+        reason: String,
+    },
+}
+
+/// A plugin could not be built from its (parsed) configuration.
+#[derive(Debug, thiserror::Error)]
+pub enum BuildError {
+    /// A hyperparameter is out of range.
+    #[error("{kind}: key `{key}`: {reason}")]
+    Invalid {
+        /// Plugin kind.
+        kind: String,
+        /// Offending key.
+        key: String,
+        /// What is allowed.
+        reason: String,
+    },
+    /// A resource the plugin needs (weights, library) is missing or unreadable.
+    #[error("{kind}: {message}")]
+    Resource {
+        /// Plugin kind.
+        kind: String,
+        /// What is wrong and how to fix it.
+        message: String,
+    },
+}
+
+/// Reading or writing data (images, masks, checkpoints, outputs) failed.
+#[derive(Debug, thiserror::Error)]
+pub enum IoError {
+    /// A file could not be read or written.
+    #[error("{path}: {message}")]
+    File {
+        /// File at fault.
+        path: PathBuf,
+        /// What happened and, where possible, what to do.
+        message: String,
+    },
+}
+
+impl IoError {
+    /// Builds an [`IoError::File`] from anything displayable.
+    pub fn file(path: impl Into<PathBuf>, message: impl std::fmt::Display) -> Self {
+        IoError::File { path: path.into(), message: message.to_string() }
+    }
+}

@@ -1,0 +1,1 @@
+//! Seeded k-means with k-means++ initialisation and restarts.

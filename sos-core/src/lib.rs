@@ -1,0 +1,14 @@
+//! nerf-sos core: cameras and scenes, the plugin roles and their registry, rendering kernels
+//! (sampling, occupancy, compositing), dense layers, the segmentation head, training, k-means
+//! and metrics.
+
+pub mod camera;
+pub mod error;
+pub mod image;
+pub mod kmeans;
+pub mod metrics;
+pub mod nn;
+pub mod plugin;
+pub mod registry;
+pub mod render;
+pub mod scene;

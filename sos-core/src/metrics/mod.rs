@@ -1,0 +1,1 @@
+//! Segmentation and image-quality metrics, matching the reference implementation.

@@ -1,0 +1,88 @@
+//! The radiance-field role. A field maps world points and view directions to density and
+//! colour, can back-propagate into its own parameters, and exposes a per-sample segmentation
+//! input so that the core attaches the segmentation head to every field automatically.
+
+use std::any::Any;
+
+use crate::camera::Vec3;
+use crate::error::BuildError;
+use crate::registry::Registration;
+use crate::scene::SceneExtent;
+
+/// What a field's forward pass kept for its backward pass (activations, interpolation
+/// weights…). Fields that can recompute everything return `None`.
+pub type FieldTape = Option<Box<dyn Any + Send + Sync>>;
+
+/// A trainable radiance field (hot path).
+///
+/// # Shapes
+/// All slices are packed per sample: `positions[n]`, `directions[n]` (unit vectors),
+/// `density[n]` (post-activation, `>= 0`), `rgb[n]` (in `(0, 1)`), `seg_input[n * seg_input_dim]`.
+pub trait RadianceField: Send + Sync {
+    /// Density (post-activation) at world positions; the cheap path used for empty-space
+    /// skipping and occupancy updates.
+    fn density(&self, positions: &[Vec3], density: &mut [f32]);
+
+    /// Density and colour at samples. When `record` is true the returned tape holds what
+    /// [`RadianceField::backward`] needs.
+    fn forward(
+        &self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        density: &mut [f32],
+        rgb: &mut [[f32; 3]],
+        record: bool,
+    ) -> FieldTape;
+
+    /// Accumulates parameter gradients given `∂L/∂density` and `∂L/∂rgb` at the samples of
+    /// the matching [`RadianceField::forward`] call.
+    fn backward(
+        &mut self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        tape: FieldTape,
+        grad_density: &[f32],
+        grad_rgb: &[[f32; 3]],
+    );
+
+    /// Adds the field's own regularisers (e.g. total variation) to the accumulated
+    /// gradients; returns their value for logging.
+    fn regularize(&mut self) -> f64 {
+        0.0
+    }
+
+    /// Applies accumulated gradients (the field owns its optimiser state) scaled by the
+    /// schedule's learning-rate factor, then clears them.
+    fn step(&mut self, lr_factor: f32);
+
+    /// Called at the start of every stage-1 step; grids use it to grow coarse-to-fine.
+    /// Returns true when the parametrisation changed (so occupancy must be rebuilt).
+    fn begin_step(&mut self, _step: usize, _total_steps: usize) -> bool {
+        false
+    }
+
+    /// Width of the per-sample segmentation input.
+    fn seg_input_dim(&self) -> usize;
+
+    /// Per-sample segmentation input (e.g. interpolated features plus the positional encoding
+    /// of the contracted position), `[n, seg_input_dim]`. Treated as constant in stage 2.
+    fn seg_input(&self, positions: &[Vec3], out: &mut [f32]);
+
+    /// Serialises all parameters (checkpoints).
+    fn save_state(&self) -> Vec<u8>;
+
+    /// Restores parameters written by [`RadianceField::save_state`] of the same kind.
+    fn load_state(&mut self, bytes: &[u8]) -> Result<(), String>;
+
+    /// Number of trainable scalars (reported by `sos train`).
+    fn num_parameters(&self) -> usize;
+}
+
+/// Configuration of a radiance field, chosen by `[field] kind = "..."`.
+#[typetag::serde(tag = "kind")]
+pub trait RadianceFieldConfig: std::fmt::Debug + Send + Sync {
+    /// Validates the settings and builds an initialised field for a scene of this extent.
+    fn build(&self, extent: &SceneExtent, seed: u64) -> Result<Box<dyn RadianceField>, BuildError>;
+}
+
+inventory::collect!(Registration<dyn RadianceFieldConfig>);

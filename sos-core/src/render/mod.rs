@@ -1,0 +1,1 @@
+//! Ray sampling, empty-space skipping and volume compositing.

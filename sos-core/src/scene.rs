@@ -1,0 +1,169 @@
+//! A loaded scene: posed views, optional ground-truth masks, the split and the scene's extent.
+
+use serde::{Deserialize, Serialize};
+
+use crate::camera::{Camera, Vec3};
+use crate::image::{GrayImage, RgbImage};
+
+/// One posed photograph.
+#[derive(Debug, Clone)]
+pub struct View {
+    /// File stem or generated name, used for output file names.
+    pub name: String,
+    /// Camera in the internal (OpenGL) convention, intrinsics matching `image`.
+    pub camera: Camera,
+    /// Colour in `[0, 1]`.
+    pub image: RgbImage,
+    /// Ground-truth foreground mask (1 = object, 0 = background), same size as `image`.
+    pub mask: Option<GrayImage>,
+}
+
+/// Where the scene's content lies, which decides how rays are sampled and how a field
+/// parametrises space.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "kebab-case")]
+pub enum SceneExtent {
+    /// Everything lies inside an axis-aligned box (object-centric captures).
+    Bounded {
+        /// Box minimum corner.
+        min: Vec3,
+        /// Box maximum corner.
+        max: Vec3,
+    },
+    /// A forward-facing capture in a recentred frame: the mean camera sits at the origin looking
+    /// along −Z, content lies between depths `near` and `far` along −Z. Fields use normalised
+    /// device coordinates of a virtual camera with this focal length and image size.
+    ForwardFacing {
+        /// Nearest content depth.
+        near: f32,
+        /// Farthest content depth (the NDC far plane is at infinity).
+        far: f32,
+        /// Focal length in pixels of the virtual NDC camera.
+        focal: f32,
+        /// Image width of the virtual NDC camera.
+        width: f32,
+        /// Image height of the virtual NDC camera.
+        height: f32,
+    },
+    /// Unbounded content around a region: a sphere of `radius` at `center` holds the
+    /// foreground, everything else is background (NeRF++ / mip-NeRF 360 scenes).
+    Unbounded {
+        /// Centre of the foreground sphere.
+        center: Vec3,
+        /// Radius of the foreground sphere.
+        radius: f32,
+    },
+}
+
+/// A scene ready for training.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    /// Human-readable name (used for output folders).
+    pub name: String,
+    /// All views, training and held-out.
+    pub views: Vec<View>,
+    /// Indices into `views` used for training.
+    pub train: Vec<usize>,
+    /// Indices into `views` held out for evaluation.
+    pub test: Vec<usize>,
+    /// Spatial extent.
+    pub extent: SceneExtent,
+    /// A smooth novel camera path for `sos render` (may be empty).
+    pub render_path: Vec<Camera>,
+}
+
+impl Scene {
+    /// Checks the invariants every loader must establish; returns a description of the first
+    /// violation.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.views.is_empty() {
+            return Err("scene has no views".into());
+        }
+        if self.train.is_empty() {
+            return Err("scene has no training views".into());
+        }
+        for &i in self.train.iter().chain(&self.test) {
+            if i >= self.views.len() {
+                return Err(format!("split index {i} out of range ({} views)", self.views.len()));
+            }
+        }
+        for v in &self.views {
+            v.camera.validate().map_err(|e| format!("view {}: {e}", v.name))?;
+            let (w, h) = (v.camera.width as usize, v.camera.height as usize);
+            if (v.image.width, v.image.height) != (w, h) {
+                return Err(format!(
+                    "view {}: image is {}x{} but camera says {w}x{h}",
+                    v.name, v.image.width, v.image.height
+                ));
+            }
+            if let Some(m) = &v.mask {
+                if (m.width, m.height) != (w, h) {
+                    return Err(format!(
+                        "view {}: mask is {}x{} but image is {w}x{h}; resize the mask",
+                        v.name, m.width, m.height
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether every held-out view has a ground-truth mask.
+    pub fn has_test_masks(&self) -> bool {
+        !self.test.is_empty() && self.test.iter().all(|&i| self.views[i].mask.is_some())
+    }
+
+    /// Point the cameras look at most: the least-squares intersection of the training cameras'
+    /// viewing axes (falls back to the mean camera centre when the axes are parallel).
+    pub fn focus_point(&self) -> Vec3 {
+        // Minimise sum_i |(I - d_i d_i^T)(p - o_i)|^2.
+        let mut a = [[0.0f64; 3]; 3];
+        let mut b = [0.0f64; 3];
+        for &i in &self.train {
+            let cam = &self.views[i].camera;
+            let (o, d) = (cam.origin(), cam.forward());
+            for r in 0..3 {
+                for c in 0..3 {
+                    let m = if r == c { 1.0 } else { 0.0 } - (d[r] * d[c]) as f64;
+                    a[r][c] += m;
+                    b[r] += m * o[c] as f64;
+                }
+            }
+        }
+        match solve3(a, b) {
+            Some(p) => [p[0] as f32, p[1] as f32, p[2] as f32],
+            None => {
+                let n = self.train.len() as f32;
+                let mut m = [0.0; 3];
+                for &i in &self.train {
+                    let o = self.views[i].camera.origin();
+                    (0..3).for_each(|k| m[k] += o[k] / n);
+                }
+                m
+            }
+        }
+    }
+}
+
+/// Solves a 3x3 linear system by Cramer's rule; `None` when it is (near) singular.
+pub fn solve3(a: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
+    let det = |m: &[[f64; 3]; 3]| {
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    };
+    let d = det(&a);
+    let scale = a.iter().flatten().map(|v| v.abs()).fold(0.0, f64::max).powi(3);
+    if d.abs() <= 1e-9 * scale.max(1e-300) {
+        return None;
+    }
+    let mut x = [0.0; 3];
+    for k in 0..3 {
+        let mut m = a;
+        for r in 0..3 {
+            m[r][k] = b[r];
+        }
+        x[k] = det(&m) / d;
+    }
+    Some(x)
+}
