@@ -75,3 +75,31 @@ impl IoError {
         IoError::File { path: path.into(), message: message.to_string() }
     }
 }
+
+/// Why a run (training, rendering, evaluation) stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    /// The configuration is invalid.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// The scene could not be loaded.
+    #[error("scene: {0}")]
+    Dataset(#[from] crate::plugin::dataset::DatasetError),
+    /// A plugin could not be built.
+    #[error("{0}")]
+    Build(#[from] BuildError),
+    /// Reading or writing a file failed.
+    #[error(transparent)]
+    Io(#[from] IoError),
+    /// A checkpoint is missing, corrupt or from another configuration.
+    #[error("checkpoint {path}: {message}")]
+    Checkpoint {
+        /// Checkpoint file.
+        path: PathBuf,
+        /// What is wrong and what to do.
+        message: String,
+    },
+    /// Training diverged.
+    #[error("training diverged: {0}")]
+    Diverged(String),
+}

@@ -3,6 +3,8 @@
 //! and metrics.
 
 pub mod camera;
+pub mod config;
+pub mod encoding;
 pub mod error;
 pub mod image;
 pub mod kmeans;
@@ -12,3 +14,5 @@ pub mod plugin;
 pub mod registry;
 pub mod render;
 pub mod scene;
+pub mod testing;
+pub mod train;

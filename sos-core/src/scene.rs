@@ -55,6 +55,21 @@ pub enum SceneExtent {
     },
 }
 
+impl SceneExtent {
+    /// A characteristic world length of the modelled region along one axis (the box's mean
+    /// side, the forward-facing depth range, four foreground radii for unbounded scenes).
+    /// Fields and the occupancy grid use it to express densities in world units.
+    pub fn characteristic_length(&self) -> f32 {
+        match *self {
+            SceneExtent::Bounded { min, max } => {
+                ((max[0] - min[0]) + (max[1] - min[1]) + (max[2] - min[2])) / 3.0
+            }
+            SceneExtent::ForwardFacing { near, far, .. } => far - near,
+            SceneExtent::Unbounded { radius, .. } => 4.0 * radius,
+        }
+    }
+}
+
 /// A scene ready for training.
 #[derive(Debug, Clone)]
 pub struct Scene {

@@ -1,2 +1,85 @@
 //! `sos`: the nerf-sos command line.
-fn main() {}
+//!
+//! Every failure prints the chain of causes (file, key, what to do) and exits with code 2.
+
+mod commands;
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+// Force-link every plugin crate so their registrations are present.
+use sos_plugins as _;
+
+/// Unsupervised object segmentation in any view of a 3D scene (NeRF-SOS) on the CPU.
+#[derive(Parser)]
+#[command(name = "sos", version, about)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+    /// Hide progress bars (they are hidden anyway when stderr is not a terminal).
+    #[arg(long, global = true)]
+    quiet: bool,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Fit the radiance field to the scene's photographs (stage 1), then evaluate.
+    Train {
+        /// Run configuration (TOML).
+        config: PathBuf,
+        /// Continue from the run's checkpoint instead of starting over.
+        #[arg(long)]
+        resume: bool,
+    },
+    /// Render held-out views and the novel camera path from a checkpoint.
+    Render {
+        /// Run configuration (TOML).
+        config: PathBuf,
+        /// Checkpoint to render (default: the run's own).
+        #[arg(long)]
+        checkpoint: Option<PathBuf>,
+    },
+    /// Compute PSNR (and segmentation metrics when available) on held-out views; writes metrics.json.
+    Eval {
+        /// Run configuration (TOML).
+        config: PathBuf,
+        /// Checkpoint to evaluate (default: the run's own).
+        #[arg(long)]
+        checkpoint: Option<PathBuf>,
+    },
+    /// List every registered plugin kind, per role.
+    List,
+    /// Write a complete default configuration.
+    Init {
+        /// Where to write it (stdout when omitted).
+        path: Option<PathBuf>,
+        /// Dataset kind of the default config.
+        #[arg(long, default_value = "synthetic")]
+        scene: String,
+        /// Field kind of the default config.
+        #[arg(long, default_value = "voxel-grid")]
+        field: String,
+    },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let progress = !cli.quiet && std::io::stderr().is_terminal();
+    let result = match cli.command {
+        Command::Train { config, resume } => commands::train::run(&config, resume, progress),
+        Command::Render { config, checkpoint } => commands::render::run(&config, checkpoint.as_deref()),
+        Command::Eval { config, checkpoint } => commands::eval::run(&config, checkpoint.as_deref()),
+        Command::List => commands::list::run(),
+        Command::Init { path, scene, field } => commands::init::run(path.as_deref(), &scene, &field),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::from(2)
+        }
+    }
+}

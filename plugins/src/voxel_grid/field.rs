@@ -1,0 +1,415 @@
+//! The runtime of the `voxel-grid` field.
+
+use rayon::prelude::*;
+use sos_core::camera::Vec3;
+use sos_core::encoding::{positional_encoding, positional_encoding_dim, sh_basis, sh_coefficients};
+use sos_core::plugin::{FieldTape, RadianceField};
+use sos_core::render::contraction::Contraction;
+use sos_core::scene::SceneExtent;
+
+use super::grid::{Corners, Grid};
+use super::sparse_adam::SparseAdam;
+use super::VoxelGridConfig;
+
+/// Samples per parallel task.
+const CHUNK: usize = 4096;
+/// Segmentation input beyond the positional encoding: voxel opacity and base colour.
+const SEG_EXTRA: usize = 4;
+
+/// A density + SH-colour voxel grid (see the module docs).
+pub struct VoxelGridField {
+    config: VoxelGridConfig,
+    contraction: Contraction,
+    grid: Grid,
+    grads: Vec<f32>,
+    adam: SparseAdam,
+    touched: Vec<u32>,
+    touched_flag: Vec<bool>,
+    /// Softplus shift so that an empty grid has opacity `alpha_init` per voxel.
+    shift: f32,
+    /// World length of one voxel (converts per-voxel optical depth to world density).
+    voxel_length: f32,
+    n_sh: usize,
+    /// Index into the upsampling schedule of the next growth.
+    next_growth: usize,
+}
+
+fn softplus(x: f32) -> f32 {
+    if x > 20.0 {
+        x
+    } else {
+        x.exp().ln_1p()
+    }
+}
+
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+impl VoxelGridField {
+    /// An empty field (uniform low density, grey colour) at the initial resolution.
+    pub fn new(config: VoxelGridConfig, contraction: Contraction, extent: &SceneExtent) -> Self {
+        let n_sh = sh_coefficients(config.sh_degree);
+        let channels = 1 + 3 * n_sh;
+        let res = config.initial_resolution;
+        let grid = Grid::new(res, channels, 0.0);
+        let n = grid.data.len();
+        let shift = (1.0 / (1.0 - config.alpha_init) - 1.0).ln();
+        let voxel_length = extent.characteristic_length() / (config.resolution.iter().sum::<usize>() as f32 / 3.0 - 1.0);
+        VoxelGridField {
+            adam: SparseAdam::new(n, 0.9, 0.99),
+            grads: vec![0.0; n],
+            touched: Vec::new(),
+            touched_flag: vec![false; grid.n_vertices()],
+            grid,
+            config,
+            contraction,
+            shift,
+            voxel_length,
+            n_sh,
+            next_growth: 0,
+        }
+    }
+
+    /// Current vertices per axis.
+    pub fn resolution(&self) -> [usize; 3] {
+        self.grid.res
+    }
+
+    fn corners(&self, p: Vec3) -> Option<Corners> {
+        self.grid.corners(self.contraction.to_unit(p))
+    }
+
+    #[inline]
+    fn density_of(&self, raw: f32) -> f32 {
+        softplus(raw + self.shift) / self.voxel_length
+    }
+
+    fn grow_to(&mut self, res: [usize; 3]) {
+        self.grid = self.grid.resampled(res);
+        let n = self.grid.data.len();
+        self.grads = vec![0.0; n];
+        self.adam = SparseAdam::new(n, 0.9, 0.99);
+        self.touched.clear();
+        self.touched_flag = vec![false; self.grid.n_vertices()];
+    }
+
+    fn touch(&mut self, vertex: u32) {
+        if !self.touched_flag[vertex as usize] {
+            self.touched_flag[vertex as usize] = true;
+            self.touched.push(vertex);
+        }
+    }
+
+    fn scheduled_resolution(&self, stage: usize) -> [usize; 3] {
+        let n = self.config.upsample_at.len();
+        let f = stage as f32 / n.max(1) as f32;
+        let mut res = [0; 3];
+        for a in 0..3 {
+            let (lo, hi) = (self.config.initial_resolution[a] as f32, self.config.resolution[a] as f32);
+            res[a] = (lo * (hi / lo).powf(f)).round() as usize;
+        }
+        res
+    }
+}
+
+impl RadianceField for VoxelGridField {
+    fn density(&self, positions: &[Vec3], density: &mut [f32]) {
+        positions.par_chunks(CHUNK).zip(density.par_chunks_mut(CHUNK)).for_each(|(p, d)| {
+            for (pi, di) in p.iter().zip(d.iter_mut()) {
+                *di = match self.corners(*pi) {
+                    Some(c) => self.density_of(self.grid.gather_first(&c)),
+                    None => 0.0,
+                };
+            }
+        });
+    }
+
+    fn forward(
+        &self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        density: &mut [f32],
+        rgb: &mut [[f32; 3]],
+        _record: bool,
+    ) -> FieldTape {
+        let ch = self.grid.channels;
+        let n_sh = self.n_sh;
+        positions
+            .par_chunks(CHUNK)
+            .zip(directions.par_chunks(CHUNK))
+            .zip(density.par_chunks_mut(CHUNK).zip(rgb.par_chunks_mut(CHUNK)))
+            .for_each(|((p, dirs), (d, c))| {
+                let mut feat = vec![0.0; ch];
+                let mut basis = vec![0.0; n_sh];
+                for i in 0..p.len() {
+                    match self.corners(p[i]) {
+                        Some(corners) => {
+                            self.grid.gather(&corners, &mut feat);
+                            d[i] = self.density_of(feat[0]);
+                            sh_basis(self.config.sh_degree, dirs[i], &mut basis);
+                            for k in 0..3 {
+                                let coef = &feat[1 + k * n_sh..1 + (k + 1) * n_sh];
+                                let x: f32 = coef.iter().zip(&basis).map(|(a, b)| a * b).sum();
+                                c[i][k] = sigmoid(x);
+                            }
+                        }
+                        None => {
+                            d[i] = 0.0;
+                            c[i] = [0.0; 3];
+                        }
+                    }
+                }
+            });
+        // Everything the backward pass needs is cheaper to recompute than to store.
+        None
+    }
+
+    fn backward(
+        &mut self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        _tape: FieldTape,
+        grad_density: &[f32],
+        grad_rgb: &[[f32; 3]],
+    ) {
+        let ch = self.grid.channels;
+        let n_sh = self.n_sh;
+        // Per-sample gradients of the interpolated channels, in parallel.
+        let per_sample: Vec<(Option<Corners>, Vec<f32>)> = positions
+            .par_iter()
+            .zip(directions.par_iter())
+            .zip(grad_density.par_iter().zip(grad_rgb.par_iter()))
+            .map(|((p, dir), (gd, gc))| {
+                let Some(corners) = self.corners(*p) else { return (None, Vec::new()) };
+                let mut feat = vec![0.0; ch];
+                self.grid.gather(&corners, &mut feat);
+                let mut basis = vec![0.0; n_sh];
+                sh_basis(self.config.sh_degree, *dir, &mut basis);
+                let mut g = vec![0.0; ch];
+                // d softplus(x)/dx = sigmoid(x).
+                g[0] = gd * sigmoid(feat[0] + self.shift) / self.voxel_length;
+                for k in 0..3 {
+                    let coef = &feat[1 + k * n_sh..1 + (k + 1) * n_sh];
+                    let x: f32 = coef.iter().zip(&basis).map(|(a, b)| a * b).sum();
+                    let s = sigmoid(x);
+                    let gx = gc[k] * s * (1.0 - s);
+                    for l in 0..n_sh {
+                        g[1 + k * n_sh + l] = gx * basis[l];
+                    }
+                }
+                (Some(corners), g)
+            })
+            .collect();
+        // Scatter into the grid gradient (sequential: vertices are shared between samples).
+        for (corners, g) in per_sample {
+            let Some(c) = corners else { continue };
+            for k in 0..8 {
+                let v = c.index[k];
+                self.touch(v);
+                let w = c.weight[k];
+                let dst = &mut self.grads[v as usize * ch..][..ch];
+                for j in 0..ch {
+                    dst[j] += w * g[j];
+                }
+            }
+        }
+    }
+
+    fn regularize(&mut self) -> f64 {
+        // Total variation between each touched vertex and its +x, +y, +z neighbours:
+        // λ Σ (v_n − v)², gradient ±2λ(v_n − v). Neighbours become touched too.
+        let (tv_d, tv_c) = (self.config.tv_density, self.config.tv_color);
+        if tv_d == 0.0 && tv_c == 0.0 {
+            return 0.0;
+        }
+        let ch = self.grid.channels;
+        let [rx, ry, rz] = self.grid.res;
+        let strides = [1usize, rx, rx * ry];
+        let mut value = 0.0f64;
+        let base: Vec<u32> = self.touched.clone();
+        for v in base {
+            let v = v as usize;
+            let (x, y, z) = (v % rx, (v / rx) % ry, v / (rx * ry));
+            let coord = [x, y, z];
+            for a in 0..3 {
+                if coord[a] + 1 >= [rx, ry, rz][a] {
+                    continue;
+                }
+                let n = v + strides[a];
+                self.touch(n as u32);
+                for j in 0..ch {
+                    let lambda = if j == 0 { tv_d } else { tv_c };
+                    let d = self.grid.data[n * ch + j] - self.grid.data[v * ch + j];
+                    value += (lambda * d * d) as f64;
+                    self.grads[n * ch + j] += 2.0 * lambda * d;
+                    self.grads[v * ch + j] -= 2.0 * lambda * d;
+                }
+            }
+        }
+        value
+    }
+
+    fn step(&mut self, lr_factor: f32) {
+        let ch = self.grid.channels;
+        let mut lr = vec![self.config.lr_color * lr_factor; ch];
+        lr[0] = self.config.lr_density * lr_factor;
+        self.adam.step(&mut self.grid.data, &mut self.grads, &self.touched, ch, &lr);
+        for &v in &self.touched {
+            self.touched_flag[v as usize] = false;
+        }
+        self.touched.clear();
+    }
+
+    fn begin_step(&mut self, step: usize, total_steps: usize) -> bool {
+        let schedule = &self.config.upsample_at;
+        if self.next_growth < schedule.len()
+            && step as f32 >= schedule[self.next_growth] * total_steps as f32
+        {
+            self.next_growth += 1;
+            let res = self.scheduled_resolution(self.next_growth);
+            self.grow_to(res);
+            return true;
+        }
+        false
+    }
+
+    fn seg_input_dim(&self) -> usize {
+        positional_encoding_dim(3, self.config.seg_frequencies) + SEG_EXTRA
+    }
+
+    fn seg_input(&self, positions: &[Vec3], out: &mut [f32]) {
+        let dim = self.seg_input_dim();
+        let pe = dim - SEG_EXTRA;
+        let ch = self.grid.channels;
+        let c0 = 0.282_094_8f32;
+        positions.par_chunks(CHUNK).zip(out.par_chunks_mut(CHUNK * dim)).for_each(|(p, o)| {
+            let mut feat = vec![0.0; ch];
+            for (i, pi) in p.iter().enumerate() {
+                let row = &mut o[i * dim..(i + 1) * dim];
+                let u = self.contraction.to_unit(*pi);
+                // Scale the unit cube to [−π, π] so the octaves resolve voxel-sized detail.
+                let x = u.map(|v| (2.0 * v - 1.0) * std::f32::consts::PI);
+                positional_encoding(&x, self.config.seg_frequencies, &mut row[..pe]);
+                match self.grid.corners(u) {
+                    Some(c) => {
+                        self.grid.gather(&c, &mut feat);
+                        row[pe] = -(-softplus(feat[0] + self.shift)).exp_m1();
+                        for k in 0..3 {
+                            row[pe + 1 + k] = sigmoid(c0 * feat[1 + k * self.n_sh]);
+                        }
+                    }
+                    None => row[pe..].fill(0.0),
+                }
+            }
+        });
+    }
+
+    fn save_state(&self) -> Vec<u8> {
+        let header = serde_json::json!({
+            "res": self.grid.res,
+            "channels": self.grid.channels,
+            "next_growth": self.next_growth,
+        })
+        .to_string();
+        let mut out = Vec::with_capacity(8 + header.len() + self.grid.data.len() * 4);
+        out.extend_from_slice(&(header.len() as u64).to_le_bytes());
+        out.extend_from_slice(header.as_bytes());
+        for v in &self.grid.data {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out
+    }
+
+    fn load_state(&mut self, bytes: &[u8]) -> Result<(), String> {
+        let too_short = || "voxel-grid state is truncated".to_string();
+        let len = u64::from_le_bytes(bytes.get(..8).ok_or_else(too_short)?.try_into().expect("8 bytes")) as usize;
+        let header: serde_json::Value = serde_json::from_slice(bytes.get(8..8 + len).ok_or_else(too_short)?)
+            .map_err(|e| format!("voxel-grid state header: {e}"))?;
+        let res: [usize; 3] = serde_json::from_value(header["res"].clone()).map_err(|e| e.to_string())?;
+        let channels = header["channels"].as_u64().ok_or("voxel-grid state: no channels")? as usize;
+        if channels != self.grid.channels {
+            return Err(format!(
+                "voxel-grid state has {channels} channels per vertex but the config implies {} (sh_degree changed?)",
+                self.grid.channels
+            ));
+        }
+        let body = &bytes[8 + len..];
+        let n = res[0] * res[1] * res[2] * channels;
+        if body.len() != n * 4 {
+            return Err(too_short());
+        }
+        self.grow_to(res);
+        for (v, b) in self.grid.data.iter_mut().zip(body.chunks_exact(4)) {
+            *v = f32::from_le_bytes(b.try_into().expect("4 bytes"));
+        }
+        self.next_growth = header["next_growth"].as_u64().unwrap_or(0) as usize;
+        Ok(())
+    }
+
+    fn num_parameters(&self) -> usize {
+        self.grid.data.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn field() -> VoxelGridField {
+        let extent = SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] };
+        let cfg = VoxelGridConfig { initial_resolution: [6, 5, 7], resolution: [12, 10, 14], sh_degree: 2, ..Default::default() };
+        let mut f = VoxelGridField::new(cfg, Contraction::new(&extent), &extent);
+        for (i, v) in f.grid.data.iter_mut().enumerate() {
+            *v = ((i * 7919) % 1000) as f32 / 500.0 - 1.0;
+        }
+        f
+    }
+
+    #[test]
+    fn backward_matches_finite_differences() {
+        let mut f = field();
+        let positions = vec![[0.1, -0.3, 0.5], [-0.7, 0.2, 0.05], [0.33, 0.61, -0.9]];
+        let directions = vec![[0.0, 0.6, 0.8], [1.0, 0.0, 0.0], [0.48, -0.6, 0.64]];
+        let gd = [0.7f32, -0.2, 0.4];
+        let gc = [[0.3f32, -0.5, 0.9], [0.1, 0.2, -0.3], [-0.6, 0.4, 0.25]];
+        let loss = |f: &VoxelGridField| -> f64 {
+            let mut d = vec![0.0; 3];
+            let mut c = vec![[0.0; 3]; 3];
+            f.forward(&positions, &directions, &mut d, &mut c, false);
+            (0..3).map(|i| (gd[i] * d[i] + (0..3).map(|k| gc[i][k] * c[i][k]).sum::<f32>()) as f64).sum()
+        };
+        f.backward(&positions, &directions, None, &gd, &gc);
+        let grads = f.grads.clone();
+        let mut checked = 0;
+        for i in 0..f.grid.data.len() {
+            if grads[i] == 0.0 {
+                continue;
+            }
+            let h = 1e-2;
+            let orig = f.grid.data[i];
+            f.grid.data[i] = orig + h;
+            let lp = loss(&f);
+            f.grid.data[i] = orig - h;
+            let lm = loss(&f);
+            f.grid.data[i] = orig;
+            let fd = (lp - lm) / (2.0 * h as f64);
+            assert!((fd - grads[i] as f64).abs() < 1e-3 * (1.0 + fd.abs()), "param {i}: fd {fd} vs {}", grads[i]);
+            checked += 1;
+        }
+        assert!(checked > 50, "only {checked} parameters had gradients");
+    }
+
+    #[test]
+    fn state_round_trips_and_growth_follows_the_schedule() {
+        let mut f = field();
+        assert!(!f.begin_step(0, 100));
+        assert!(f.begin_step(10, 100));
+        assert!(f.resolution()[0] > 6);
+        let bytes = f.save_state();
+        let mut g = field();
+        g.load_state(&bytes).unwrap();
+        assert_eq!(g.grid.data, f.grid.data);
+        assert!(g.load_state(&bytes[..bytes.len() - 3]).is_err());
+    }
+}

@@ -1,0 +1,83 @@
+//! Occupancy grid for empty-space skipping (instant-ngp / nerfacc style): a coarse grid over
+//! the unit cube holding a decaying maximum of the field's density, thresholded to a bitmask.
+
+use rand::Rng;
+use rayon::prelude::*;
+
+use crate::camera::Vec3;
+use crate::plugin::RadianceField;
+use crate::render::contraction::Contraction;
+
+/// A `res³` occupancy grid over the unit cube.
+#[derive(Debug, Clone)]
+pub struct OccupancyGrid {
+    res: usize,
+    density: Vec<f32>,
+    occupied: Vec<bool>,
+    threshold: f32,
+}
+
+impl OccupancyGrid {
+    /// A grid with every cell occupied (nothing is skipped until the first update).
+    pub fn new(res: usize, threshold: f32) -> Self {
+        let n = res * res * res;
+        OccupancyGrid { res, density: vec![f32::MAX; n], occupied: vec![true; n], threshold }
+    }
+
+    /// Cells per side.
+    pub fn resolution(&self) -> usize {
+        self.res
+    }
+
+    /// Fraction of occupied cells.
+    pub fn occupancy(&self) -> f32 {
+        self.occupied.iter().filter(|&&o| o).count() as f32 / self.occupied.len() as f32
+    }
+
+    /// Whether the cell containing unit-cube point `u` may hold matter.
+    #[inline]
+    pub fn is_occupied(&self, u: Vec3) -> bool {
+        let r = self.res as f32;
+        let i = ((u[0] * r) as usize).min(self.res - 1);
+        let j = ((u[1] * r) as usize).min(self.res - 1);
+        let k = ((u[2] * r) as usize).min(self.res - 1);
+        self.occupied[(k * self.res + j) * self.res + i]
+    }
+
+    /// Re-probes the field: each cell's value becomes `max(decay · old, σ(probe))` with one
+    /// jittered probe per cell, then cells above the threshold are marked occupied. With
+    /// `decay = 0` the grid is rebuilt from scratch.
+    pub fn update(&mut self, field: &dyn RadianceField, contraction: &Contraction, decay: f32, rng: &mut impl Rng) {
+        let res = self.res;
+        let seed: u64 = rng.gen();
+        // Probe positions per z-slab, in parallel; each slab has its own jitter stream.
+        let slab = res * res;
+        let fresh: Vec<f32> = (0..res)
+            .into_par_iter()
+            .flat_map_iter(|k| {
+                let mut local = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ (k as u64).wrapping_mul(0x9E3779B97F4A7C15));
+                let mut positions = Vec::with_capacity(slab);
+                for j in 0..res {
+                    for i in 0..res {
+                        let u = [
+                            (i as f32 + local.gen::<f32>()) / res as f32,
+                            (j as f32 + local.gen::<f32>()) / res as f32,
+                            (k as f32 + local.gen::<f32>()) / res as f32,
+                        ];
+                        positions.push(contraction.from_unit(u));
+                    }
+                }
+                let mut sigma = vec![0.0; slab];
+                field.density(&positions, &mut sigma);
+                sigma.into_iter()
+            })
+            .collect();
+        for (i, s) in fresh.into_iter().enumerate() {
+            let old = if self.density[i] == f32::MAX { 0.0 } else { self.density[i] };
+            self.density[i] = (decay * old).max(s);
+            self.occupied[i] = self.density[i] > self.threshold;
+        }
+    }
+}
+
+use rand::SeedableRng;

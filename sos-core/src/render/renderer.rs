@@ -1,0 +1,219 @@
+//! Rendering a batch of rays through a field: candidate samples with empty-space skipping, a
+//! cheap density pass for early ray termination (and, with a frozen field, weight
+//! thresholding), a full pass on the surviving samples, then compositing and its backward.
+
+use rand::{Rng, SeedableRng};
+use rayon::prelude::*;
+
+use crate::plugin::{FieldTape, RadianceField};
+use crate::render::composite::{self, RayColor, RayGrad, RaySamples};
+use crate::render::contraction::Contraction;
+use crate::render::occupancy::OccupancyGrid;
+use crate::render::rays::RayBatch;
+use crate::render::sampler::{self, MarchOptions, Samples};
+use crate::scene::SceneExtent;
+
+/// Rays per parallel marching task.
+const MARCH_CHUNK: usize = 256;
+
+/// How to render.
+#[derive(Debug, Clone, Copy)]
+pub struct RenderOptions {
+    /// Candidate placement.
+    pub march: MarchOptions,
+    /// Stop a ray once its transmittance falls below this (early ray termination); 0 disables.
+    pub early_stop: f32,
+    /// Drop samples whose compositing weight is at most this (only sound when the density is
+    /// frozen, e.g. in stage 2); 0 keeps every sample before termination.
+    pub min_weight: f32,
+}
+
+/// The scene-level context a renderer needs.
+#[derive(Debug, Clone, Copy)]
+pub struct RenderContext<'a> {
+    /// Scene extent (sets the candidate spacing).
+    pub extent: &'a SceneExtent,
+    /// Unit-cube mapping (shared with the occupancy grid).
+    pub contraction: &'a Contraction,
+    /// Empty-space skipping, if enabled.
+    pub occupancy: Option<&'a OccupancyGrid>,
+}
+
+/// Samples that survived skipping, with the field's values at them.
+pub struct Rendered {
+    /// Surviving samples.
+    pub samples: Samples,
+    /// Density at each sample.
+    pub density: Vec<f32>,
+    /// Colour at each sample.
+    pub rgb: Vec<[f32; 3]>,
+    /// Compositing weight of each sample (filled by [`Rendered::composite`]).
+    pub weights: Vec<f32>,
+    /// Per-ray results (filled by [`Rendered::composite`]).
+    pub colors: Vec<RayColor>,
+    /// The field's tape for its backward pass.
+    pub tape: FieldTape,
+    /// Candidates placed before the density pass (for statistics).
+    pub n_candidates: usize,
+}
+
+/// Marches, prunes and evaluates the field. Call [`Rendered::composite`] next.
+pub fn render(
+    field: &dyn RadianceField,
+    ctx: RenderContext,
+    rays: &RayBatch,
+    options: RenderOptions,
+    record: bool,
+    rng: &mut impl Rng,
+) -> Rendered {
+    let candidates = march_parallel(ctx, rays, options.march, rng);
+    let n_candidates = candidates.len();
+
+    // Density-only pass to find where each ray terminates and which weights matter.
+    let mut sigma = vec![0.0; candidates.len()];
+    field.density(&candidates.positions, &mut sigma);
+    let mut keep = vec![false; candidates.len()];
+    for r in 0..candidates.n_rays() {
+        let mut optical = 0.0f32;
+        for i in candidates.range(r) {
+            let transmittance = (-optical).exp();
+            if options.early_stop > 0.0 && transmittance < options.early_stop {
+                break;
+            }
+            let tau = sigma[i] * candidates.delta[i];
+            let w = -(-tau).exp_m1() * transmittance;
+            keep[i] = w > options.min_weight || options.min_weight <= 0.0;
+            optical += tau;
+        }
+    }
+    let (samples, _) = candidates.filter(|i| keep[i]);
+
+    let mut density = vec![0.0; samples.len()];
+    let mut rgb = vec![[0.0; 3]; samples.len()];
+    let tape = field.forward(&samples.positions, &samples.directions, &mut density, &mut rgb, record);
+    Rendered { samples, density, rgb, weights: Vec::new(), colors: Vec::new(), tape, n_candidates }
+}
+
+fn march_parallel(ctx: RenderContext, rays: &RayBatch, options: MarchOptions, rng: &mut impl Rng) -> Samples {
+    let n_chunks = rays.len().div_ceil(MARCH_CHUNK);
+    let seeds: Vec<u64> = (0..n_chunks).map(|_| rng.gen()).collect();
+    let parts: Vec<Samples> = (0..n_chunks)
+        .into_par_iter()
+        .map(|c| {
+            let (start, end) = (c * MARCH_CHUNK, ((c + 1) * MARCH_CHUNK).min(rays.len()));
+            let mut local = rand_chacha::ChaCha8Rng::seed_from_u64(seeds[c]);
+            sampler::march(ctx.extent, ctx.contraction, ctx.occupancy, &rays.slice(start, end), options, &mut local)
+        })
+        .collect();
+    concat(parts)
+}
+
+fn concat(parts: Vec<Samples>) -> Samples {
+    let total: usize = parts.iter().map(|p| p.len()).sum();
+    let mut out = Samples {
+        ray_start: vec![0],
+        t: Vec::with_capacity(total),
+        delta: Vec::with_capacity(total),
+        positions: Vec::with_capacity(total),
+        directions: Vec::with_capacity(total),
+    };
+    for p in parts {
+        let base = out.t.len() as u32;
+        out.ray_start.extend(p.ray_start[1..].iter().map(|s| s + base));
+        out.t.extend(p.t);
+        out.delta.extend(p.delta);
+        out.positions.extend(p.positions);
+        out.directions.extend(p.directions);
+    }
+    out
+}
+
+impl Rendered {
+    /// Composites every ray; `extra` holds `d_extra` channels per surviving sample (may be
+    /// empty with `d_extra = 0`). Returns the composited extra channels, `[n_rays * d_extra]`.
+    pub fn composite(&mut self, extra: &[f32], d_extra: usize) -> Vec<f32> {
+        let n_rays = self.samples.n_rays();
+        self.weights = vec![0.0; self.samples.len()];
+        self.colors = vec![RayColor::default(); n_rays];
+        let mut extra_out = vec![0.0; n_rays * d_extra];
+        for r in 0..n_rays {
+            let range = self.samples.range(r);
+            let s = RaySamples {
+                sigma: &self.density[range.clone()],
+                delta: &self.samples.delta[range.clone()],
+                t: &self.samples.t[range.clone()],
+                rgb: &self.rgb[range.clone()],
+                extra: &extra[range.start * d_extra..range.end * d_extra],
+                d_extra,
+            };
+            self.colors[r] = composite::composite(
+                &s,
+                &mut self.weights[range.clone()],
+                &mut extra_out[r * d_extra..(r + 1) * d_extra],
+            );
+        }
+        extra_out
+    }
+
+    /// Backward of [`Rendered::composite`]: given per-ray output gradients, returns
+    /// `(∂L/∂σ, ∂L/∂rgb, ∂L/∂extra)` per sample.
+    pub fn composite_backward(
+        &self,
+        extra: &[f32],
+        d_extra: usize,
+        grads: &[RayGrad],
+    ) -> (Vec<f32>, Vec<[f32; 3]>, Vec<f32>) {
+        let n = self.samples.len();
+        let mut g_sigma = vec![0.0; n];
+        let mut g_rgb = vec![[0.0; 3]; n];
+        let mut g_extra = vec![0.0; n * d_extra];
+        for (r, g) in grads.iter().enumerate() {
+            let range = self.samples.range(r);
+            let s = RaySamples {
+                sigma: &self.density[range.clone()],
+                delta: &self.samples.delta[range.clone()],
+                t: &self.samples.t[range.clone()],
+                rgb: &self.rgb[range.clone()],
+                extra: &extra[range.start * d_extra..range.end * d_extra],
+                d_extra,
+            };
+            composite::composite_backward(
+                &s,
+                &self.weights[range.clone()],
+                self.colors[r].acc,
+                g,
+                &mut g_sigma[range.clone()],
+                &mut g_rgb[range.clone()],
+                &mut g_extra[range.start * d_extra..range.end * d_extra],
+            );
+        }
+        (g_sigma, g_rgb, g_extra)
+    }
+}
+
+/// Renders many rays in chunks without gradients (evaluation and `sos render`); returns the
+/// per-ray colours and the per-ray composited extra channels produced by `extra_fn` from the
+/// surviving samples' positions.
+pub fn render_inference(
+    field: &dyn RadianceField,
+    ctx: RenderContext,
+    rays: &RayBatch,
+    options: RenderOptions,
+    chunk: usize,
+    d_extra: usize,
+    extra_fn: &dyn Fn(&Samples) -> Vec<f32>,
+) -> (Vec<RayColor>, Vec<f32>) {
+    let mut colors = Vec::with_capacity(rays.len());
+    let mut extras = Vec::with_capacity(rays.len() * d_extra);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+    let mut start = 0;
+    while start < rays.len() {
+        let end = (start + chunk).min(rays.len());
+        let mut r = render(field, ctx, &rays.slice(start, end), options, false, &mut rng);
+        let extra = if d_extra > 0 { extra_fn(&r.samples) } else { Vec::new() };
+        extras.extend(r.composite(&extra, d_extra));
+        colors.extend(r.colors);
+        start = end;
+    }
+    (colors, extras)
+}

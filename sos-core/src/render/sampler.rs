@@ -1,0 +1,332 @@
+//! Placing samples along rays: stratified candidates over the scene extent, skipping empty
+//! space with the occupancy grid, and inverse-CDF importance sampling.
+
+use rand::Rng;
+
+use crate::camera::{axpy, Vec3};
+use crate::render::contraction::Contraction;
+use crate::render::occupancy::OccupancyGrid;
+use crate::render::rays::RayBatch;
+use crate::scene::SceneExtent;
+
+/// Samples of many rays, packed ray after ray.
+///
+/// # Shapes
+/// `ray_start`: `[n_rays + 1]` (samples of ray `r` are `ray_start[r]..ray_start[r + 1]`);
+/// every other field `[n_samples]`.
+#[derive(Debug, Clone, Default)]
+pub struct Samples {
+    /// Offsets of each ray's samples.
+    pub ray_start: Vec<u32>,
+    /// Distance of the sample along its (unit-direction) ray.
+    pub t: Vec<f32>,
+    /// Length of the interval the sample stands for.
+    pub delta: Vec<f32>,
+    /// World position.
+    pub positions: Vec<Vec3>,
+    /// Unit view direction (the ray's).
+    pub directions: Vec<Vec3>,
+}
+
+impl Samples {
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        self.t.len()
+    }
+
+    /// Whether there are no samples.
+    pub fn is_empty(&self) -> bool {
+        self.t.is_empty()
+    }
+
+    /// Number of rays.
+    pub fn n_rays(&self) -> usize {
+        self.ray_start.len().saturating_sub(1)
+    }
+
+    /// Sample index range of ray `r`.
+    pub fn range(&self, r: usize) -> std::ops::Range<usize> {
+        self.ray_start[r] as usize..self.ray_start[r + 1] as usize
+    }
+
+    /// Keeps the samples for which `keep(index)` is true.
+    pub fn filter(&self, mut keep: impl FnMut(usize) -> bool) -> (Samples, Vec<u32>) {
+        let mut out = Samples { ray_start: Vec::with_capacity(self.ray_start.len()), ..Default::default() };
+        let mut kept = Vec::new();
+        out.ray_start.push(0);
+        for r in 0..self.n_rays() {
+            for i in self.range(r) {
+                if keep(i) {
+                    out.t.push(self.t[i]);
+                    out.delta.push(self.delta[i]);
+                    out.positions.push(self.positions[i]);
+                    out.directions.push(self.directions[i]);
+                    kept.push(i as u32);
+                }
+            }
+            out.ray_start.push(out.t.len() as u32);
+        }
+        (out, kept)
+    }
+}
+
+/// How candidates are spread along each ray.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Spacing {
+    /// Uniform in distance between the ray's entry and exit of a box.
+    Linear,
+    /// Uniform in disparity (inverse depth along −Z) between `near` and `far`.
+    Disparity {
+        /// Nearest depth.
+        near: f32,
+        /// Farthest depth.
+        far: f32,
+    },
+    /// Uniform in distance inside the foreground sphere, then uniform in disparity out to
+    /// `far_factor` radii.
+    SphereThenDisparity {
+        /// Sphere centre.
+        center: Vec3,
+        /// Sphere radius.
+        radius: f32,
+    },
+}
+
+/// Where on a ray candidates go: the interval `[s0, s1]` of a monotone parameter and how it
+/// maps to distance.
+#[derive(Debug, Clone, Copy)]
+struct RayParam {
+    t_of: fn(&RayCtx, f32) -> f32,
+}
+
+struct RayCtx {
+    origin: Vec3,
+    direction: Vec3,
+    t0: f32,
+    t1: f32,
+    inv_near: f32,
+    inv_far: f32,
+    split: f32,
+}
+
+/// Candidate sampling settings.
+#[derive(Debug, Clone, Copy)]
+pub struct MarchOptions {
+    /// Number of candidate intervals per ray across the whole extent.
+    pub steps: usize,
+    /// Jitter each sample uniformly inside its interval (training) instead of its midpoint.
+    pub stratified: bool,
+}
+
+/// The candidate spacing suited to a scene extent.
+pub fn spacing_for(extent: &SceneExtent) -> Spacing {
+    match *extent {
+        SceneExtent::Bounded { .. } => Spacing::Linear,
+        SceneExtent::ForwardFacing { near, far, .. } => Spacing::Disparity { near, far },
+        SceneExtent::Unbounded { center, radius } => Spacing::SphereThenDisparity { center, radius },
+    }
+}
+
+fn ray_context(extent: &SceneExtent, origin: Vec3, direction: Vec3) -> Option<RayCtx> {
+    let mut ctx = RayCtx { origin, direction, t0: 0.0, t1: 0.0, inv_near: 0.0, inv_far: 0.0, split: 0.0 };
+    match *extent {
+        SceneExtent::Bounded { min, max } => {
+            let (t0, t1) = ray_box(origin, direction, min, max)?;
+            ctx.t0 = t0.max(1e-4);
+            ctx.t1 = t1;
+            (ctx.t1 > ctx.t0).then_some(ctx)
+        }
+        SceneExtent::ForwardFacing { near, far, .. } => {
+            if direction[2] >= -1e-6 {
+                return None;
+            }
+            ctx.inv_near = 1.0 / near;
+            ctx.inv_far = 1.0 / far;
+            Some(ctx)
+        }
+        SceneExtent::Unbounded { center, radius } => {
+            // Exit of the foreground sphere; cameras may be inside or outside it.
+            let oc = [origin[0] - center[0], origin[1] - center[1], origin[2] - center[2]];
+            let b = oc[0] * direction[0] + oc[1] * direction[1] + oc[2] * direction[2];
+            let c = oc[0] * oc[0] + oc[1] * oc[1] + oc[2] * oc[2] - radius * radius;
+            let disc = b * b - c;
+            let t_exit = if disc > 0.0 { -b + disc.sqrt() } else { radius };
+            ctx.t0 = if c > 0.0 && disc > 0.0 { (-b - disc.sqrt()).max(1e-3) } else { 1e-3 };
+            ctx.split = t_exit.max(ctx.t0 + 1e-3);
+            ctx.inv_near = 1.0 / ctx.split;
+            ctx.inv_far = 1.0 / (ctx.split + 1000.0 * radius);
+            Some(ctx)
+        }
+    }
+}
+
+fn t_linear(c: &RayCtx, s: f32) -> f32 {
+    c.t0 + s * (c.t1 - c.t0)
+}
+
+fn t_disparity(c: &RayCtx, s: f32) -> f32 {
+    let depth = 1.0 / (c.inv_near - s * (c.inv_near - c.inv_far));
+    // The point at camera-space depth `depth` along −Z: o_z + t d_z = −depth.
+    ((-depth - c.origin[2]) / c.direction[2]).max(0.0)
+}
+
+fn t_sphere(c: &RayCtx, s: f32) -> f32 {
+    if s <= 0.5 {
+        c.t0 + 2.0 * s * (c.split - c.t0)
+    } else {
+        1.0 / (c.inv_near - (2.0 * s - 1.0) * (c.inv_near - c.inv_far))
+    }
+}
+
+/// Entry and exit distances of a ray through a box.
+pub fn ray_box(origin: Vec3, direction: Vec3, min: Vec3, max: Vec3) -> Option<(f32, f32)> {
+    let mut t0 = f32::NEG_INFINITY;
+    let mut t1 = f32::INFINITY;
+    for k in 0..3 {
+        let inv = 1.0 / direction[k];
+        let (a, b) = ((min[k] - origin[k]) * inv, (max[k] - origin[k]) * inv);
+        t0 = t0.max(a.min(b));
+        t1 = t1.min(a.max(b));
+    }
+    (t1 > t0.max(0.0)).then_some((t0.max(0.0), t1))
+}
+
+/// Places candidate samples on every ray, dropping those in cells the occupancy grid marks
+/// empty (all kept when `occupancy` is `None`).
+pub fn march(
+    extent: &SceneExtent,
+    contraction: &Contraction,
+    occupancy: Option<&OccupancyGrid>,
+    rays: &RayBatch,
+    options: MarchOptions,
+    rng: &mut impl Rng,
+) -> Samples {
+    let param = RayParam {
+        t_of: match spacing_for(extent) {
+            Spacing::Linear => t_linear,
+            Spacing::Disparity { .. } => t_disparity,
+            Spacing::SphereThenDisparity { .. } => t_sphere,
+        },
+    };
+    let mut out = Samples { ray_start: Vec::with_capacity(rays.len() + 1), ..Default::default() };
+    out.ray_start.push(0);
+    let steps = options.steps.max(1);
+    let inv_steps = 1.0 / steps as f32;
+    for r in 0..rays.len() {
+        let (o, d) = (rays.origins[r], rays.directions[r]);
+        if let Some(ctx) = ray_context(extent, o, d) {
+            let mut t_prev = (param.t_of)(&ctx, 0.0);
+            for i in 0..steps {
+                let t_next = (param.t_of)(&ctx, (i + 1) as f32 * inv_steps);
+                let xi = if options.stratified { rng.gen::<f32>() } else { 0.5 };
+                let t = t_prev + xi * (t_next - t_prev);
+                let delta = t_next - t_prev;
+                t_prev = t_next;
+                if delta <= 0.0 {
+                    continue;
+                }
+                let p = axpy(o, t, d);
+                let u = contraction.to_unit(p);
+                if !Contraction::inside(u) {
+                    continue;
+                }
+                if let Some(occ) = occupancy {
+                    if !occ.is_occupied(u) {
+                        continue;
+                    }
+                }
+                out.t.push(t);
+                out.delta.push(delta);
+                out.positions.push(p);
+                out.directions.push(d);
+            }
+        }
+        out.ray_start.push(out.t.len() as u32);
+    }
+    out
+}
+
+/// Inverse-CDF sampling of `n` distances from a piecewise-constant density over bins with
+/// edges `edges[0..=m]` and weights `weights[0..m]` (NeRF's `sample_pdf`). `uniform` draws
+/// the quantiles at random (training) instead of evenly spaced; a padding of `1e-5` per bin
+/// keeps empty rays well defined. Returns sorted distances.
+pub fn sample_pdf(edges: &[f32], weights: &[f32], n: usize, uniform: Option<&mut dyn rand::RngCore>) -> Vec<f32> {
+    let m = weights.len();
+    assert_eq!(edges.len(), m + 1, "sample_pdf needs one more edge than weights");
+    let w: Vec<f32> = weights.iter().map(|w| w.max(0.0) + 1e-5).collect();
+    let total: f32 = w.iter().sum();
+    let mut cdf = Vec::with_capacity(m + 1);
+    cdf.push(0.0f32);
+    let mut acc = 0.0;
+    for wk in &w {
+        acc += wk / total;
+        cdf.push(acc.min(1.0));
+    }
+    let mut quantiles: Vec<f32> = match uniform {
+        Some(rng) => (0..n).map(|_| (rng.next_u32() >> 8) as f32 / (1u32 << 24) as f32).collect(),
+        None => (0..n).map(|i| if n > 1 { i as f32 / (n - 1) as f32 } else { 0.5 }).collect(),
+    };
+    quantiles.sort_by(|a, b| a.total_cmp(b));
+    quantiles
+        .iter()
+        .map(|&u| {
+            // First bin whose upper CDF exceeds u.
+            let k = cdf[1..].partition_point(|&c| c < u).min(m - 1);
+            let span = cdf[k + 1] - cdf[k];
+            let f = if span < 1e-5 { 0.0 } else { (u - cdf[k]) / span };
+            edges[k] + f.clamp(0.0, 1.0) * (edges[k + 1] - edges[k])
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Camera;
+    use rand::SeedableRng;
+
+    #[test]
+    fn importance_samples_follow_the_weights() {
+        let edges: Vec<f32> = (0..=10).map(|i| i as f32).collect();
+        let mut weights = vec![0.0; 10];
+        weights[3] = 1.0;
+        weights[7] = 3.0;
+        let t = sample_pdf(&edges, &weights, 400, None);
+        let in3 = t.iter().filter(|&&x| (3.0..4.0).contains(&x)).count();
+        let in7 = t.iter().filter(|&&x| (7.0..8.0).contains(&x)).count();
+        assert!(t.windows(2).all(|w| w[0] <= w[1]));
+        assert!((in7 as f32 / in3 as f32 - 3.0).abs() < 0.3, "{in3} {in7}");
+        assert!(in3 + in7 > 390);
+    }
+
+    #[test]
+    fn candidates_cover_the_box_and_respect_intervals() {
+        let extent = SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] };
+        let cam = Camera::look_at([0.0, 0.0, 3.0], [0.0; 3], [0.0, 1.0, 0.0], 8, 8, 8.0);
+        let rays = RayBatch::full_image(&cam);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+        let s = march(&extent, &Contraction::new(&extent), None, &rays, MarchOptions { steps: 64, stratified: true }, &mut rng);
+        assert_eq!(s.n_rays(), 64);
+        for r in 0..s.n_rays() {
+            let range = s.range(r);
+            let span: f32 = s.delta[range.clone()].iter().sum();
+            // Central rays cross the full cube depth of 2.
+            if r == 27 {
+                assert!((span - 2.0).abs() < 0.1, "span {span}");
+            }
+            assert!(s.t[range].windows(2).all(|w| w[0] < w[1]));
+        }
+    }
+
+    #[test]
+    fn disparity_spacing_spans_near_to_far() {
+        let extent = SceneExtent::ForwardFacing { near: 1.0, far: 10.0, focal: 10.0, width: 8.0, height: 8.0 };
+        let rays = RayBatch { origins: vec![[0.0; 3]], directions: vec![[0.0, 0.0, -1.0]] };
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+        let s = march(&extent, &Contraction::new(&extent), None, &rays, MarchOptions { steps: 32, stratified: false }, &mut rng);
+        assert_eq!(s.len(), 32);
+        let span: f32 = s.delta.iter().sum();
+        assert!((span - 9.0).abs() < 1e-3, "{span}");
+        assert!(s.delta[31] > s.delta[0] * 10.0, "far intervals are longer");
+    }
+}

@@ -1,0 +1,3 @@
+//! Helpers shared by tests: reading the reference fixtures.
+
+pub mod fixture;

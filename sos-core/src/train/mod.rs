@@ -1,0 +1,8 @@
+//! Training: the run session, stage-1 photometric fitting, checkpoints and evaluation.
+
+pub mod checkpoint;
+pub mod evaluate;
+pub mod photometric;
+pub mod session;
+
+pub use session::Session;

@@ -1,0 +1,120 @@
+//! Stage 1: fitting the radiance field to the photographs with an MSE loss on random rays.
+
+use std::time::Instant;
+
+use indicatif::{ProgressBar, ProgressStyle};
+use rand::{Rng, SeedableRng};
+
+use crate::error::RunError;
+use crate::render::composite::RayGrad;
+use crate::render::rays::RayBatch;
+use crate::render::renderer::render;
+use crate::train::session::Session;
+
+/// Consecutive non-finite losses after which training stops.
+const MAX_BAD_STEPS: usize = 20;
+
+/// Statistics of one training step.
+#[derive(Debug, Clone, Copy, Default, serde::Serialize)]
+pub struct StepStats {
+    /// Mean squared error over the batch.
+    pub mse: f64,
+    /// PSNR of that error.
+    pub psnr: f64,
+    /// Surviving samples per ray.
+    pub samples_per_ray: f64,
+}
+
+/// PSNR of a mean squared error on `[0, 1]` images.
+pub fn psnr_of_mse(mse: f64) -> f64 {
+    -10.0 * mse.max(1e-12).log10()
+}
+
+/// Runs stage 1 from `session.step` to `train.steps`, checkpointing along the way.
+pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<StepStats, RunError> {
+    let total = session.config.train.steps;
+    let n_rays = session.config.train.rays_per_step;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed.wrapping_add(session.step as u64));
+    let bar = if show_progress { ProgressBar::new(total as u64) } else { ProgressBar::hidden() };
+    bar.set_style(
+        ProgressStyle::with_template("stage 1 {bar:30} {pos}/{len} {msg} [{elapsed_precise}<{eta_precise}]")
+            .expect("valid template"),
+    );
+    bar.set_position(session.step as u64);
+    let started = Instant::now();
+    let mut last = StepStats::default();
+    let mut bad_steps = 0;
+    let mut smoothed_psnr = 0.0;
+    while session.step < total {
+        if session.field.begin_step(session.step, total) {
+            session.refresh_occupancy(0.0);
+        }
+        session.maintain_occupancy();
+
+        // A batch of random rays from random training views.
+        let mut rays = RayBatch::default();
+        let mut targets = Vec::with_capacity(n_rays);
+        for _ in 0..n_rays {
+            let v = &session.scene.views[session.scene.train[rng.gen_range(0..session.scene.train.len())]];
+            let (col, row) = (rng.gen_range(0..v.camera.width), rng.gen_range(0..v.camera.height));
+            rays.push_pixel(&v.camera, col, row);
+            targets.push(v.image.pixel(col as usize, row as usize));
+        }
+        let options = session.render_options(true);
+        let mut r = render(session.field.as_ref(), session.render_context(), &rays, options, true, &mut rng);
+        r.composite(&[], 0);
+
+        let scale = 2.0 / (n_rays * 3) as f32;
+        let mut mse = 0.0f64;
+        let grads: Vec<RayGrad> = r
+            .colors
+            .iter()
+            .zip(&targets)
+            .map(|(c, t)| {
+                let mut g = RayGrad::default();
+                for k in 0..3 {
+                    let e = c.rgb[k] - t[k];
+                    mse += (e * e) as f64;
+                    g.rgb[k] = scale * e;
+                }
+                g
+            })
+            .collect();
+        mse /= (n_rays * 3) as f64;
+        if !mse.is_finite() {
+            bad_steps += 1;
+            bar.println(format!("step {}: non-finite loss, step skipped", session.step));
+            if bad_steps >= MAX_BAD_STEPS {
+                return Err(RunError::Diverged(format!("{MAX_BAD_STEPS} non-finite losses in a row at step {}", session.step)));
+            }
+            session.step += 1;
+            continue;
+        }
+        bad_steps = 0;
+        let (g_sigma, g_rgb, _) = r.composite_backward(&[], 0, &grads);
+        let tape = r.tape.take();
+        session.field.backward(&r.samples.positions, &r.samples.directions, tape, &g_sigma, &g_rgb);
+        session.field.regularize();
+        let progress = session.step as f32 / total.max(1) as f32;
+        let lr_factor = session.config.train.final_lr_factor.powf(progress);
+        session.field.step(lr_factor);
+        session.step += 1;
+
+        last = StepStats { mse, psnr: psnr_of_mse(mse), samples_per_ray: r.samples.len() as f64 / n_rays as f64 };
+        smoothed_psnr = if smoothed_psnr == 0.0 { last.psnr } else { 0.9 * smoothed_psnr + 0.1 * last.psnr };
+        let rays_per_s = (session.step as f64 * n_rays as f64) / started.elapsed().as_secs_f64().max(1e-9);
+        bar.set_message(format!(
+            "loss {:.5} psnr {:.2} dB  {:.0} rays/s  {:.0} samples/ray",
+            mse, smoothed_psnr, rays_per_s, last.samples_per_ray
+        ));
+        bar.set_position(session.step as u64);
+        let every = session.config.train.checkpoint_every;
+        if every > 0 && session.step % every == 0 && session.step < total {
+            session.save_checkpoint()?;
+        }
+    }
+    bar.finish();
+    session.refresh_occupancy(0.0);
+    session.save_checkpoint()?;
+    Ok(last)
+}

@@ -1,0 +1,175 @@
+//! A run's live state: config, scene, field and occupancy grid, with checkpointing and
+//! rendering of whole views.
+
+use std::path::{Path, PathBuf};
+
+use rand::SeedableRng;
+
+use crate::camera::Camera;
+use crate::config::RunConfig;
+use crate::error::RunError;
+use crate::image::RgbImage;
+use crate::plugin::RadianceField;
+use crate::render::contraction::Contraction;
+use crate::render::occupancy::OccupancyGrid;
+use crate::render::rays::RayBatch;
+use crate::render::renderer::{render_inference, RenderContext, RenderOptions};
+use crate::render::sampler::MarchOptions;
+use crate::scene::Scene;
+use crate::train::checkpoint::{self, CheckpointMeta};
+
+/// Decay of the occupancy grid's running maximum between updates.
+const OCCUPANCY_DECAY: f32 = 0.95;
+
+/// Everything a run works on.
+pub struct Session {
+    /// The parsed configuration.
+    pub config: RunConfig,
+    /// Folder of the config file (relative paths resolve against it).
+    pub config_dir: PathBuf,
+    /// `<output_dir>/<name>/`.
+    pub run_dir: PathBuf,
+    /// The loaded scene.
+    pub scene: Scene,
+    /// The radiance field.
+    pub field: Box<dyn RadianceField>,
+    /// The field's kind (from the config).
+    pub field_kind: String,
+    /// Unit-cube mapping of the scene.
+    pub contraction: Contraction,
+    /// Empty-space skipping grid, when enabled.
+    pub occupancy: Option<OccupancyGrid>,
+    /// Stage-1 steps completed.
+    pub step: usize,
+}
+
+/// The `kind` tag of a typetag'd config object.
+pub fn kind_of<T: serde::Serialize + ?Sized>(config: &T) -> String {
+    toml::Value::try_from(config)
+        .ok()
+        .and_then(|v| v.get("kind").and_then(|k| k.as_str().map(str::to_owned)))
+        .unwrap_or_else(|| "?".into())
+}
+
+impl Session {
+    /// Loads the config, the scene and builds a fresh field.
+    pub fn open(config_path: &Path) -> Result<Session, RunError> {
+        let config = RunConfig::load(config_path)?;
+        let config_dir = config_path.parent().map(Path::to_path_buf).unwrap_or_default();
+        Session::from_config(config, &config_dir)
+    }
+
+    /// Builds a session from an already parsed config.
+    pub fn from_config(config: RunConfig, config_dir: &Path) -> Result<Session, RunError> {
+        let scene = config.scene.open(config_dir)?;
+        scene.validate().map_err(|message| crate::plugin::dataset::DatasetError::Invalid {
+            path: config_dir.to_path_buf(),
+            message,
+        })?;
+        let field = config.field.build(&scene.extent, config.seed)?;
+        let field_kind = kind_of(&config.field);
+        let contraction = Contraction::new(&scene.extent);
+        let occupancy = config.train.occupancy.then(|| {
+            let t = &config.train;
+            let delta = scene.extent.characteristic_length() / t.samples_per_ray as f32;
+            let threshold = -(1.0 - t.occupancy_alpha).ln() / delta;
+            OccupancyGrid::new(t.occupancy_resolution, threshold)
+        });
+        let run_dir = config_dir.join(&config.output_dir).join(&config.name);
+        Ok(Session {
+            config,
+            config_dir: config_dir.to_path_buf(),
+            run_dir,
+            scene,
+            field,
+            field_kind,
+            contraction,
+            occupancy,
+            step: 0,
+        })
+    }
+
+    /// Path of the run's checkpoint.
+    pub fn checkpoint_path(&self) -> PathBuf {
+        self.run_dir.join("checkpoint.bin")
+    }
+
+    /// Writes the checkpoint atomically.
+    pub fn save_checkpoint(&self) -> Result<(), RunError> {
+        let meta = CheckpointMeta { step: self.step, field_kind: self.field_kind.clone(), config: self.config.to_toml() };
+        let state = self.field.save_state();
+        checkpoint::save(&self.checkpoint_path(), &meta, &[("field", &state)])
+    }
+
+    /// Restores the field from `path` (the run's own checkpoint when `None`).
+    pub fn load_checkpoint(&mut self, path: Option<&Path>) -> Result<(), RunError> {
+        let path = path.map(Path::to_path_buf).unwrap_or_else(|| self.checkpoint_path());
+        let ckpt = checkpoint::load(&path)?;
+        let fail = |message: String| RunError::Checkpoint { path: path.clone(), message };
+        if ckpt.meta.field_kind != self.field_kind {
+            return Err(fail(format!(
+                "written by a `{}` field but the config asks for `{}`",
+                ckpt.meta.field_kind, self.field_kind
+            )));
+        }
+        let state = ckpt.section("field").ok_or_else(|| fail("has no field section".into()))?;
+        self.field.load_state(state).map_err(fail)?;
+        self.step = ckpt.meta.step;
+        self.refresh_occupancy(0.0);
+        Ok(())
+    }
+
+    /// Re-probes the occupancy grid (`decay = 0` rebuilds it from scratch).
+    pub fn refresh_occupancy(&mut self, decay: f32) {
+        if let Some(occ) = self.occupancy.as_mut() {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(self.config.seed ^ self.step as u64);
+            occ.update(self.field.as_ref(), &self.contraction, decay, &mut rng);
+        }
+    }
+
+    /// Periodic occupancy maintenance during training.
+    pub fn maintain_occupancy(&mut self) {
+        let t = &self.config.train;
+        if self.step >= t.occupancy_warmup && self.step % t.occupancy_every == 0 {
+            self.refresh_occupancy(OCCUPANCY_DECAY);
+        }
+    }
+
+    /// Render settings for training (`stratified`) or evaluation.
+    pub fn render_options(&self, stratified: bool) -> RenderOptions {
+        let t = &self.config.train;
+        RenderOptions {
+            march: MarchOptions { steps: t.samples_per_ray, stratified },
+            early_stop: t.early_stop,
+            min_weight: 0.0,
+        }
+    }
+
+    /// The scene-level render context.
+    pub fn render_context(&self) -> RenderContext<'_> {
+        RenderContext {
+            extent: &self.scene.extent,
+            contraction: &self.contraction,
+            occupancy: if self.step >= self.config.train.occupancy_warmup { self.occupancy.as_ref() } else { None },
+        }
+    }
+
+    /// Renders a whole view: colour and the reference-style depth `Σ w t`.
+    pub fn render_view(&self, camera: &Camera) -> (RgbImage, Vec<f32>) {
+        let rays = RayBatch::full_image(camera);
+        let (colors, _) = render_inference(
+            self.field.as_ref(),
+            self.render_context(),
+            &rays,
+            self.render_options(false),
+            self.config.render.chunk,
+            0,
+            &|_| Vec::new(),
+        );
+        let mut img = RgbImage::new(camera.width as usize, camera.height as usize);
+        for (i, c) in colors.iter().enumerate() {
+            img.data[i * 3..i * 3 + 3].copy_from_slice(&c.rgb);
+        }
+        (img, colors.iter().map(|c| c.depth).collect())
+    }
+}
