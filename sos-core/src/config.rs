@@ -6,7 +6,9 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::error::ConfigError;
-use crate::plugin::{DatasetConfig, RadianceFieldConfig};
+use crate::plugin::{
+    ContrastiveLossConfig, DatasetConfig, FeatureExtractorConfig, PairMinerConfig, RadianceFieldConfig,
+};
 
 /// Everything a run needs.
 #[derive(Debug, Serialize, Deserialize)]
@@ -31,6 +33,136 @@ pub struct RunConfig {
     /// Rendering of held-out views and camera paths.
     #[serde(default)]
     pub render: RenderConfig,
+    /// Stage 2: training the segmentation head.
+    #[serde(default)]
+    pub segment: SegmentConfig,
+    /// The segmentation head attached to the field.
+    #[serde(default)]
+    pub head: HeadConfig,
+    /// The 2D teacher (`kind` = a registered extractor; default `cell-stats`).
+    #[serde(default)]
+    pub extractor: Option<Box<dyn FeatureExtractorConfig>>,
+    /// Negative-pair mining (`kind` = a registered miner; default `cls-cosine`).
+    #[serde(default)]
+    pub miner: Option<Box<dyn PairMinerConfig>>,
+    /// Contrastive loss terms, each with its weight (default: appearance 1.0, geometry 0.01).
+    #[serde(default)]
+    pub loss: Vec<LossEntry>,
+    /// Mask inference: clustering and the foreground rule.
+    #[serde(default)]
+    pub masks: MaskConfig,
+}
+
+/// One `[[loss]]` entry: a contrastive loss and the weight the trainer gives it.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct LossEntry {
+    /// Weight of this term in the total loss (the trainer is the only place that weights).
+    pub weight: f32,
+    /// The loss (`kind` and its own settings).
+    #[serde(flatten)]
+    pub loss: Box<dyn ContrastiveLossConfig>,
+}
+
+/// Where the teacher's input images come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum TeacherSource {
+    /// The field's rendered colour of the patch (the reference's choice).
+    Rendered,
+    /// The captured photograph at the patch's pixels.
+    Captured,
+}
+
+/// Stage-2 settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SegmentConfig {
+    /// Optimisation steps of the head (0 skips stage 2).
+    pub steps: usize,
+    /// Patches per step, each from a different training view.
+    pub patches: usize,
+    /// Rays per patch side.
+    pub patch_size: u32,
+    /// Pixels between neighbouring rays of a patch (reduced, with a notice, for small images).
+    pub stride: u32,
+    /// Adam learning rate of the head.
+    pub lr: f32,
+    /// Learning-rate factor at the last step (exponential decay).
+    pub final_lr_factor: f32,
+    /// Evaluate the head only at samples whose compositing weight exceeds this (the density
+    /// is frozen in stage 2, so skipped samples contribute at most this much); 0 disables.
+    pub weight_threshold: f32,
+    /// Teacher input: rendered patches or captured photographs.
+    pub teacher_source: TeacherSource,
+    /// Reuse teacher features of identical patches while the field is frozen.
+    pub cache_teacher: bool,
+    /// Weight of the photometric loss on the patch rays; above 0 the field is trained jointly
+    /// with the head (an ablation; the paper freezes it).
+    pub photometric_weight: f32,
+}
+
+impl Default for SegmentConfig {
+    fn default() -> Self {
+        SegmentConfig {
+            steps: 300,
+            patches: 8,
+            patch_size: 64,
+            stride: 6,
+            lr: 1e-3,
+            final_lr_factor: 0.3,
+            weight_threshold: 1e-3,
+            teacher_source: TeacherSource::Rendered,
+            cache_teacher: true,
+            photometric_weight: 0.0,
+        }
+    }
+}
+
+/// The segmentation head: an MLP from the field's per-sample segmentation input to logits.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct HeadConfig {
+    /// Hidden layer widths (the reference: `[128]`; the paper's four layers: `[256, 256, 128]`).
+    pub hidden: Vec<usize>,
+    /// Logit channels (the reference: 2).
+    pub outputs: usize,
+}
+
+impl Default for HeadConfig {
+    fn default() -> Self {
+        HeadConfig { hidden: vec![128], outputs: 2 }
+    }
+}
+
+/// How the foreground cluster is chosen among the k-means clusters.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ForegroundRule {
+    /// The cluster with the higher mean teacher saliency (DINO's [CLS] attention, as the
+    /// reference does, or the weight-free extractor's colour distinctness).
+    Saliency,
+    /// The cluster whose rendered 3D points lie nearer the point the training cameras look at.
+    Focus,
+}
+
+/// Mask inference settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MaskConfig {
+    /// Number of k-means clusters (the reference: 2).
+    pub clusters: usize,
+    /// k-means restarts (k-means++ initialisation each).
+    pub restarts: usize,
+    /// Apply a softmax to the logits before clustering (the reference run does not).
+    pub softmax: bool,
+    /// Rule that names the foreground cluster.
+    pub foreground: ForegroundRule,
+}
+
+impl Default for MaskConfig {
+    fn default() -> Self {
+        MaskConfig { clusters: 2, restarts: 10, softmax: false, foreground: ForegroundRule::Focus }
+    }
 }
 
 fn default_name() -> String {
@@ -149,6 +281,44 @@ impl RunConfig {
         }
         if !(t.occupancy_alpha >= 0.0 && t.occupancy_alpha < 1.0) {
             return Err(invalid("train.occupancy_alpha", "must be in [0, 1)"));
+        }
+        let g = &self.segment;
+        if g.steps > 0 {
+            if g.patches == 0 {
+                return Err(invalid("segment.patches", "must be at least 1"));
+            }
+            if !(2..=256).contains(&g.patch_size) {
+                return Err(invalid("segment.patch_size", "must be in 2..=256"));
+            }
+            if g.stride == 0 {
+                return Err(invalid("segment.stride", "must be at least 1"));
+            }
+            if !(g.lr > 0.0 && g.lr.is_finite()) {
+                return Err(invalid("segment.lr", "must be a positive number"));
+            }
+            if !(g.final_lr_factor > 0.0 && g.final_lr_factor <= 1.0) {
+                return Err(invalid("segment.final_lr_factor", "must be in (0, 1]"));
+            }
+            if !(0.0..1.0).contains(&g.weight_threshold) {
+                return Err(invalid("segment.weight_threshold", "must be in [0, 1)"));
+            }
+            if !(g.photometric_weight >= 0.0 && g.photometric_weight.is_finite()) {
+                return Err(invalid("segment.photometric_weight", "must be zero or positive"));
+            }
+        }
+        if self.head.outputs == 0 || self.head.hidden.contains(&0) {
+            return Err(invalid("head", "`outputs` and every `hidden` width must be at least 1"));
+        }
+        if !(2..=16).contains(&self.masks.clusters) {
+            return Err(invalid("masks.clusters", "must be in 2..=16"));
+        }
+        if self.masks.restarts == 0 {
+            return Err(invalid("masks.restarts", "must be at least 1"));
+        }
+        for (i, l) in self.loss.iter().enumerate() {
+            if !(l.weight >= 0.0 && l.weight.is_finite()) {
+                return Err(invalid(&format!("loss[{i}].weight"), "must be zero or positive"));
+            }
         }
         if self.render.chunk == 0 {
             return Err(invalid("render.chunk", "must be at least 1"));

@@ -14,5 +14,6 @@ pub mod plugin;
 pub mod registry;
 pub mod render;
 pub mod scene;
+pub mod segment;
 pub mod testing;
 pub mod train;

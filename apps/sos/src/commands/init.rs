@@ -3,8 +3,9 @@
 use std::path::Path;
 
 use anyhow::{bail, Context};
-use sos_core::config::{RenderConfig, RunConfig, TrainConfig};
+use sos_core::config::{HeadConfig, MaskConfig, RenderConfig, RunConfig, SegmentConfig, TrainConfig};
 use sos_core::plugin::{DatasetConfig, RadianceFieldConfig};
+use sos_core::segment::defaults;
 use sos_core::registry::{find, registrations};
 
 fn kinds<C: ?Sized + 'static>() -> String
@@ -29,6 +30,12 @@ pub fn run(path: Option<&Path>, scene: &str, field: &str) -> anyhow::Result<()> 
         field: (field_reg.default_config)(),
         train: TrainConfig::default(),
         render: RenderConfig::default(),
+        segment: SegmentConfig::default(),
+        head: HeadConfig::default(),
+        extractor: defaults::extractor(),
+        miner: defaults::miner(),
+        loss: defaults::losses(),
+        masks: MaskConfig::default(),
     };
     let text = format!("# nerf-sos run configuration (written by `sos init`)\n{}", config.to_toml());
     match path {

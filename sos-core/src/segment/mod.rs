@@ -1,0 +1,5 @@
+//! Stage 2: the segmentation head attached to every field, strided patch sampling, training
+//! with the collaborative contrastive loss, and mask inference with k-means.
+
+pub mod defaults;
+pub mod patches;
