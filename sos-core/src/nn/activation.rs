@@ -69,7 +69,12 @@ fn forward_rows<F: Fn(f32) -> f32 + Sync>(y: &mut [f32], bias: &[f32], f: F) {
 }
 
 /// `grad *= df(out)` element-wise, and (when `col_sum` is non-empty) `col_sum += Σ_rows grad`.
-fn backward_rows<D: Fn(f32) -> f32 + Sync>(out: &[f32], grad: &mut [f32], col_sum: &mut [f32], df: D) {
+fn backward_rows<D: Fn(f32) -> f32 + Sync>(
+    out: &[f32],
+    grad: &mut [f32],
+    col_sum: &mut [f32],
+    df: D,
+) {
     let cols = col_sum.len();
     let body = |o: &[f32], g: &mut [f32], acc: &mut [f32]| {
         if cols == 0 {
@@ -116,7 +121,11 @@ fn backward_rows<D: Fn(f32) -> f32 + Sync>(out: &[f32], grad: &mut [f32], col_su
 /// `g`: `[rows, cols]` with `cols = col_sum.len()`.
 pub fn add_column_sums(g: &[f32], col_sum: &mut [f32]) {
     let cols = col_sum.len();
-    assert!(cols > 0 && g.len() % cols == 0, "add_column_sums: {} values do not form rows of {cols}", g.len());
+    assert!(
+        cols > 0 && g.chunks_exact(cols).remainder().is_empty(),
+        "add_column_sums: {} values do not form rows of {cols}",
+        g.len()
+    );
     let body = |g: &[f32], acc: &mut [f32]| {
         for row in g.chunks_exact(cols) {
             acc.iter_mut().zip(row).for_each(|(a, &v)| *a += v);
@@ -193,7 +202,10 @@ impl Activation {
     /// # Shapes
     /// `y`: `[rows, bias.len()]`.
     pub fn forward_bias(self, y: &mut [f32], bias: &[f32]) {
-        assert!(bias.is_empty() || y.len() % bias.len() == 0, "forward_bias: ragged rows");
+        assert!(
+            bias.is_empty() || y.chunks_exact(bias.len()).remainder().is_empty(),
+            "forward_bias: ragged rows"
+        );
         match self {
             Activation::Identity if bias.is_empty() => {}
             Activation::Identity => forward_rows(y, bias, |v| v),
@@ -210,12 +222,21 @@ impl Activation {
     /// # Shapes
     /// `out`, `grad`: `[rows, bias_grad.len()]`.
     pub fn backward_bias(self, out: &[f32], grad: &mut [f32], bias_grad: &mut [f32]) {
-        assert_eq!(out.len(), grad.len(), "backward: output and gradient lengths differ");
-        assert!(bias_grad.is_empty() || grad.len() % bias_grad.len() == 0, "backward_bias: ragged rows");
+        assert_eq!(
+            out.len(),
+            grad.len(),
+            "backward: output and gradient lengths differ"
+        );
+        assert!(
+            bias_grad.is_empty() || grad.chunks_exact(bias_grad.len()).remainder().is_empty(),
+            "backward_bias: ragged rows"
+        );
         match self {
             Activation::Identity if bias_grad.is_empty() => {}
             Activation::Identity => add_column_sums(grad, bias_grad),
-            Activation::Relu => backward_rows(out, grad, bias_grad, |y| if y > 0.0 { 1.0 } else { 0.0 }),
+            Activation::Relu => {
+                backward_rows(out, grad, bias_grad, |y| if y > 0.0 { 1.0 } else { 0.0 })
+            }
             Activation::Sigmoid => backward_rows(out, grad, bias_grad, |y| y * (1.0 - y)),
             Activation::Softplus => backward_rows(out, grad, bias_grad, |y| -(-y).exp_m1()),
         }
@@ -228,7 +249,12 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
-    const ALL: [Activation; 4] = [Activation::Identity, Activation::Relu, Activation::Sigmoid, Activation::Softplus];
+    const ALL: [Activation; 4] = [
+        Activation::Identity,
+        Activation::Relu,
+        Activation::Sigmoid,
+        Activation::Softplus,
+    ];
 
     /// Central differences in f64 of the f32 forward, vs. the backward from the output.
     #[test]
@@ -285,14 +311,20 @@ mod tests {
                     for j in 0..cols {
                         let i = r * cols + j;
                         let want_y = act.apply(x[i] + b[j]);
-                        assert!((y[i] - want_y).abs() <= 1e-6 * (1.0 + want_y.abs()), "{act:?} forward");
+                        assert!(
+                            (y[i] - want_y).abs() <= 1e-6 * (1.0 + want_y.abs()),
+                            "{act:?} forward"
+                        );
                         let want_g = dy[i] * act.derivative_from_output(want_y);
                         assert!((g[i] - want_g).abs() <= 1e-6, "{act:?} backward");
                         db_ref[j] += want_g as f64;
                     }
                 }
                 for j in 0..cols {
-                    assert!((db[j] as f64 - db_ref[j]).abs() <= 1e-3, "{act:?} bias grad {j}");
+                    assert!(
+                        (db[j] as f64 - db_ref[j]).abs() <= 1e-3,
+                        "{act:?} bias grad {j}"
+                    );
                 }
             }
         }
@@ -300,7 +332,10 @@ mod tests {
 
     #[test]
     fn serde_names_are_kebab_case() {
-        assert_eq!(serde_json::to_string(&Activation::Softplus).unwrap(), "\"softplus\"");
+        assert_eq!(
+            serde_json::to_string(&Activation::Softplus).unwrap(),
+            "\"softplus\""
+        );
         let a: Activation = serde_json::from_str("\"relu\"").unwrap();
         assert_eq!(a, Activation::Relu);
     }
