@@ -49,7 +49,7 @@ impl RayBatch {
 }
 
 /// A `size x size` grid of pixels with spacing `stride`, top-left at `(col0, row0)`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub struct PatchGrid {
     /// Left column.
     pub col0: u32,

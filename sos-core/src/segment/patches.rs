@@ -9,7 +9,7 @@ use crate::render::rays::{PatchGrid, RayBatch};
 use crate::scene::Scene;
 
 /// One patch: which view and where.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub struct Patch {
     /// Index into `scene.views`.
     pub view: usize,
