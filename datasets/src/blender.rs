@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use sos_core::camera::{Camera, Vec3};
+use sos_core::camera::{add, cross, dot, normalize, sub, Camera, Vec3};
 use sos_core::image::RgbImage;
 use sos_core::plugin::dataset::{DatasetConfig, DatasetError};
 use sos_core::registry::Registration;
@@ -286,6 +286,8 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
         .and_then(|n| n.to_str())
         .unwrap_or("blender")
         .to_string();
+    let centre = [0, 1, 2].map(|k| 0.5 * (cfg.aabb[0][k] + cfg.aabb[1][k]));
+    let render_path = orbit_path(&views[..n_train], centre, 40);
     Ok(Scene {
         name,
         train: (0..n_train).collect(),
@@ -295,6 +297,266 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
             min: cfg.aabb[0],
             max: cfg.aabb[1],
         },
-        render_path: Vec::new(),
+        render_path,
     })
+}
+
+/// A circle of `n` cameras around `centre` at the training cameras' mean distance and height
+/// (along their mean up axis), like the 40-view circle of NeRF's Blender loader; empty when the
+/// cameras sit on the axis.
+fn orbit_path(train: &[View], centre: Vec3, n: usize) -> Vec<Camera> {
+    let first = &train[0].camera;
+    let mut up = [0.0; 3];
+    let (mut dist, mut height) = (0.0, 0.0);
+    for v in train {
+        up = add(up, v.camera.rotate([0.0, 1.0, 0.0]));
+    }
+    let up = normalize(up);
+    for v in train {
+        let d = sub(v.camera.origin(), centre);
+        dist += dot(d, d).sqrt() / train.len() as f32;
+        height += dot(d, up) / train.len() as f32;
+    }
+    let d0 = sub(first.origin(), centre);
+    let e1 = normalize(sub(d0, scale3(up, dot(d0, up))));
+    let e2 = cross(up, e1);
+    let ring = (dist * dist - height * height).max(0.0).sqrt();
+    if ring < 1e-3 * dist.max(1e-6) || dot(e1, e1) < 0.5 {
+        return Vec::new();
+    }
+    (0..n)
+        .map(|i| {
+            let (s, c) = (std::f32::consts::TAU * i as f32 / n as f32).sin_cos();
+            let around = add(scale3(e1, ring * c), scale3(e2, ring * s));
+            let eye = add(add(centre, scale3(up, height)), around);
+            Camera::look_at(eye, centre, up, first.width, first.height, first.fx)
+        })
+        .collect()
+}
+
+fn scale3(v: Vec3, s: f32) -> Vec3 {
+    [v[0] * s, v[1] * s, v[2] * s]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::export::write_blender;
+    use crate::synthetic::{generate, Rig, SyntheticConfig, ROOM_MAX, ROOM_MIN};
+
+    fn temp_dir(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("sos-blender-{}-{name}", std::process::id()));
+        std::fs::remove_dir_all(&dir).ok();
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    fn room_cfg(dir: &Path) -> BlenderConfig {
+        BlenderConfig {
+            path: dir.to_path_buf(),
+            aabb: [ROOM_MIN, ROOM_MAX],
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn round_trip_of_the_synthetic_scene() {
+        let scene = generate(&SyntheticConfig {
+            rig: Rig::ObjectCentric,
+            width: 96,
+            height: 72,
+            views: 12,
+            ..Default::default()
+        });
+        let dir = temp_dir("rt");
+        write_blender(&scene, &dir).unwrap();
+        let loaded = load_blender(&room_cfg(&dir), &dir).unwrap();
+        loaded.validate().unwrap();
+        assert_eq!((loaded.train.len(), loaded.test.len()), (10, 2));
+        // Views come back train first, then test.
+        let order: Vec<usize> = scene.train.iter().chain(&scene.test).copied().collect();
+        for (&i, l) in order.iter().zip(&loaded.views) {
+            let o = &scene.views[i];
+            assert_eq!(
+                o.camera.cam_to_world, l.camera.cam_to_world,
+                "view {}",
+                o.name
+            );
+            assert!((o.camera.fx - l.camera.fx).abs() < 1e-3 && l.camera.cx == 48.0);
+            let err = o
+                .image
+                .data
+                .iter()
+                .zip(&l.image.data)
+                .map(|(p, q)| (p - q).abs())
+                .fold(0.0, f32::max);
+            assert!(err <= 0.5 / 255.0 + 1e-5, "view {}: {err}", o.name);
+            assert_eq!(o.mask, l.mask, "view {}", o.name);
+        }
+        assert_eq!(
+            loaded.extent,
+            SceneExtent::Bounded {
+                min: ROOM_MIN,
+                max: ROOM_MAX
+            }
+        );
+        assert_eq!(loaded.render_path.len(), 40);
+        for cam in &loaded.render_path {
+            cam.validate().unwrap();
+        }
+        // The val split is written as a copy of test.
+        let val = load_blender(
+            &BlenderConfig {
+                test_split: "val".into(),
+                ..room_cfg(&dir)
+            },
+            &dir,
+        )
+        .unwrap();
+        assert_eq!(val.test.len(), 2);
+        // Downscaling halves images and focal lengths; full-size masks are then an error.
+        let half = load_blender(
+            &BlenderConfig {
+                downscale: 2,
+                ..room_cfg(&dir)
+            },
+            &dir,
+        );
+        let err = half.map(|_| ()).unwrap_err().to_string();
+        assert!(err.contains("masks") && err.contains("resize"), "{err}");
+        std::fs::remove_dir_all(dir.join("masks")).unwrap();
+        let half = load_blender(
+            &BlenderConfig {
+                downscale: 2,
+                ..room_cfg(&dir)
+            },
+            &dir,
+        )
+        .unwrap();
+        assert_eq!(
+            (half.views[0].image.width, half.views[0].image.height),
+            (48, 36)
+        );
+        assert!((half.views[0].camera.fx - loaded.views[0].camera.fx / 2.0).abs() < 1e-3);
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    fn write_minimal(dir: &Path, json: &str) {
+        std::fs::write(dir.join("transforms_train.json"), json).unwrap();
+        let test = r#"{"camera_angle_x": 0.7, "frames": []}"#;
+        std::fs::write(dir.join("transforms_test.json"), test).unwrap();
+    }
+
+    const ONE_FRAME: &str = r#"{"camera_angle_x": 0.6911, "frames": [{"file_path": "./train/r_0",
+        "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]}]}"#;
+
+    #[test]
+    fn rgba_is_composited_on_the_background() {
+        let dir = temp_dir("rgba");
+        std::fs::create_dir_all(dir.join("train")).unwrap();
+        let mut img = image::RgbaImage::new(4, 2);
+        for (x, _, p) in img.enumerate_pixels_mut() {
+            *p = image::Rgba([255, 0, 0, if x < 2 { 0 } else { 255 }]);
+        }
+        img.save(dir.join("train/r_0.png")).unwrap();
+        write_minimal(&dir, ONE_FRAME);
+        let white = BlenderConfig {
+            path: dir.clone(),
+            ..Default::default()
+        };
+        let white = load_blender(&white, &dir).unwrap();
+        let v = &white.views[0];
+        assert_eq!(v.image.pixel(0, 0), [1.0, 1.0, 1.0]);
+        assert_eq!(v.image.pixel(3, 1), [1.0, 0.0, 0.0]);
+        assert!((v.camera.fx - 2.0 / (0.6911f32 / 2.0).tan()).abs() < 1e-4);
+        let black = BlenderConfig {
+            white_background: false,
+            path: dir.clone(),
+            ..Default::default()
+        };
+        let black = load_blender(&black, &dir).unwrap();
+        assert_eq!(black.views[0].image.pixel(0, 0), [0.0, 0.0, 0.0]);
+        assert!(black.test.is_empty() && black.views[0].mask.is_none());
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn hostile_inputs_are_errors_naming_the_file() {
+        let dir = temp_dir("bad");
+        std::fs::create_dir_all(dir.join("train")).unwrap();
+        image::RgbImage::new(4, 2)
+            .save(dir.join("train/r_0.png"))
+            .unwrap();
+        let open = || {
+            let cfg = BlenderConfig {
+                path: dir.clone(),
+                ..Default::default()
+            };
+            load_blender(&cfg, &dir)
+                .map(|_| ())
+                .unwrap_err()
+                .to_string()
+        };
+        let frame = |path: &str, matrix: &str| {
+            format!(
+                r#"{{"camera_angle_x": 0.7, "frames": [{{"file_path": "{path}",
+                    "transform_matrix": {matrix}}}]}}"#
+            )
+        };
+        let cases = [
+            (
+                "malformed",
+                r#"{"camera_angle_x": 0.7, "frames": [{"file_path": }"#.to_string(),
+                "transforms_train.json",
+            ),
+            (
+                "no frames",
+                r#"{"camera_angle_x": 0.7}"#.to_string(),
+                "transforms_train.json",
+            ),
+            (
+                "3x4 matrix",
+                frame("./train/r_0", "[[1,0,0,0],[0,1,0,0],[0,0,1,4]]"),
+                "transforms_train.json",
+            ),
+            (
+                "scaled rotation",
+                frame("./train/r_0", "[[2,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]"),
+                "transforms_train.json",
+            ),
+            (
+                "bad angle",
+                r#"{"camera_angle_x": -1, "frames": []}"#.to_string(),
+                "transforms_train.json",
+            ),
+            (
+                "missing image",
+                frame("./train/r_9", "[[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]"),
+                "r_9",
+            ),
+        ];
+        for (what, json, needle) in cases {
+            write_minimal(&dir, &json);
+            let err = open();
+            assert!(err.contains(needle), "{what}: {err}");
+        }
+        write_minimal(&dir, ONE_FRAME);
+        std::fs::create_dir_all(dir.join("masks/train")).unwrap();
+        image::GrayImage::new(3, 3)
+            .save(dir.join("masks/train/r_0.png"))
+            .unwrap();
+        let err = open();
+        assert!(err.contains("r_0.png") && err.contains("resize"), "{err}");
+        std::fs::remove_dir_all(dir.join("masks")).unwrap();
+        std::fs::write(dir.join("train/r_0.png"), b"garbage").unwrap();
+        let err = open();
+        assert!(err.contains("r_0.png"), "{err}");
+        std::fs::remove_file(dir.join("transforms_test.json")).unwrap();
+        let err = open();
+        assert!(
+            err.contains("transforms_test.json") && err.contains("missing"),
+            "{err}"
+        );
+        std::fs::remove_dir_all(dir).ok();
+    }
 }

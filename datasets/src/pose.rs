@@ -185,12 +185,7 @@ fn percentile(v: &mut [f64], q: f64) -> f64 {
 
 /// The camera of a pose with centred principal point and square pixels.
 pub fn to_camera(p: &Pose, width: u32, height: u32, focal: f64) -> Camera {
-    let mut cam_to_world = [[0.0f32; 4]; 3];
-    for r in 0..3 {
-        for c in 0..4 {
-            cam_to_world[r][c] = p[r][c] as f32;
-        }
-    }
+    let cam_to_world = p.map(|row| row.map(|v| v as f32));
     Camera {
         width,
         height,
@@ -204,13 +199,7 @@ pub fn to_camera(p: &Pose, width: u32, height: u32, focal: f64) -> Camera {
 
 /// The pose of a camera, widened to `f64`.
 pub fn from_camera(cam: &Camera) -> Pose {
-    let mut p = [[0.0; 4]; 3];
-    for r in 0..3 {
-        for c in 0..4 {
-            p[r][c] = cam.cam_to_world[r][c] as f64;
-        }
-    }
-    p
+    cam.cam_to_world.map(|row| row.map(|v| v as f64))
 }
 
 #[cfg(test)]

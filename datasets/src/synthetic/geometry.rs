@@ -199,7 +199,14 @@ mod tests {
         let (t, n) = yawed_box(o, d, [0.0, 0.5, 0.0], [0.5, 0.5, 0.5], 0.0).unwrap();
         assert!((t - 4.5).abs() < 1e-5 && (n[2] - 1.0).abs() < 1e-5);
         // A 45° yawed unit cube presents an edge at distance √2/2.
-        let (t, _) = yawed_box(o, d, [0.0, 0.5, 0.0], [0.5, 0.5, 0.5], 0.785_398_2).unwrap();
+        let (t, _) = yawed_box(
+            o,
+            d,
+            [0.0, 0.5, 0.0],
+            [0.5, 0.5, 0.5],
+            std::f32::consts::FRAC_PI_4,
+        )
+        .unwrap();
         assert!((t - (5.0 - 0.5f32.sqrt())).abs() < 1e-4, "{t}");
         // Looking down onto a cylinder hits its top cap.
         let (t, n) = cylinder([0.0, 3.0, 0.0], [0.0, -1.0, 0.0], 0.0, 0.0, 0.0, 1.0, 0.5).unwrap();
