@@ -22,6 +22,24 @@ fn main() {
             start.elapsed().as_secs_f32(),
             scene.extent
         );
+        // Detail proxy: PSNR of each view against itself shrunk 2x and 3x (box) and enlarged
+        // back (bilinear); fine texture that a coarse grid cannot hold lowers it.
+        for k in [2, 3] {
+            let mut mse = 0.0f64;
+            for v in &scene.views {
+                let (w, h) = (v.image.width, v.image.height);
+                let back = v.image.resized(w / k, h / k).resized(w, h);
+                let e: f64 = v
+                    .image
+                    .data
+                    .iter()
+                    .zip(&back.data)
+                    .map(|(a, b)| ((a - b) as f64).powi(2))
+                    .sum();
+                mse += e / v.image.data.len() as f64 / scene.views.len() as f64;
+            }
+            eprintln!("  {k}x down/up PSNR {:.1} dB", -10.0 * mse.log10());
+        }
         for i in [0, 5, 10, 20] {
             let v = &scene.views[i];
             v.image

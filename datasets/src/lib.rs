@@ -9,6 +9,8 @@
 //! recentring, spiral paths), [`export`] (writing scenes in the LLFF / Blender layouts) and
 //! [`image_files`] (image and mask lookup).
 
+#![warn(missing_docs)]
+
 pub mod blender;
 pub mod export;
 pub mod image_files;

@@ -4,7 +4,9 @@
 //! Folder layout: `poses_bounds.npy` (N x 17: a 3x5 `[R | t | (H, W, focal)]` per image in
 //! LLFF's (down, right, back) axes at full resolution, then the near and far depth bounds),
 //! images in `images_{factor}/` (or `images/`, downscaled in-process with a box filter when
-//! that folder is missing), optional masks in `segments/` or `masks/` with the images' stems.
+//! that folder is missing), optional masks in `segments/` or `masks/` with the images' stems
+//! (foreground = value > 0.5, same size as the loaded images; masks may cover only some views,
+//! e.g. the test views, but a mask folder matching no image is an error).
 //!
 //! Processing, as the reference: columns reordered to (right, up, back); H, W taken from the
 //! images and focal divided by the factor; translations and bounds scaled by

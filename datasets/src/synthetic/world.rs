@@ -187,7 +187,7 @@ impl World {
                 let s = stripes(p[1], 0.2);
                 mix([0.3, 0.3, 0.34], [0.6, 0.58, 0.55], s)
             }
-            Surface::Box => scale([0.2, 0.35, 0.8], 0.7 + 0.5 * noise(0.2, 8)),
+            Surface::Box => scale([0.2, 0.35, 0.8], 0.7 + 0.5 * noise(0.3, 8)),
             Surface::Cylinder => {
                 let a = (p[2] - CYLINDER_AT[1]).atan2(p[0] - CYLINDER_AT[0]);
                 mix(
@@ -196,7 +196,7 @@ impl World {
                     stripes(a, std::f32::consts::TAU / 8.0),
                 )
             }
-            Surface::Cone => scale([0.6, 0.3, 0.7], 0.75 + 0.4 * noise(0.2, 9)),
+            Surface::Cone => scale([0.6, 0.3, 0.7], 0.75 + 0.4 * noise(0.3, 9)),
         }
     }
 }
