@@ -1,0 +1,562 @@
+//! Dataset kind `blender`: object-centric captures in the NeRF-synthetic ("Blender") layout.
+//!
+//! `transforms_train.json` and `transforms_test.json` (or `transforms_val.json`, see
+//! `test_split`) each hold `camera_angle_x` (horizontal field of view, radians) and `frames`
+//! with `file_path` (relative to the scene folder, with or without an image extension) and a
+//! 4x4 camera-to-world `transform_matrix` in OpenGL axes. RGBA images are composited on white
+//! (or black). Optional masks mirror the image paths under `masks/`: the mask of
+//! `train/r_0.png` is `masks/train/r_0.<png|jpg>`; foreground = value > 0.5.
+
+use std::path::{Path, PathBuf};
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use sos_core::camera::{add, cross, dot, normalize, sub, Camera, Vec3};
+use sos_core::image::RgbImage;
+use sos_core::plugin::dataset::{DatasetConfig, DatasetError};
+use sos_core::registry::Registration;
+use sos_core::scene::{Scene, SceneExtent, View};
+
+use crate::image_files::{find_image, find_with_stem, load_mask, stem};
+
+/// Configuration of the `blender` dataset (`[scene] kind = "blender"`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct BlenderConfig {
+    /// Scene folder (holding `transforms_*.json`), relative to the config file's folder.
+    pub path: PathBuf,
+    /// Composite RGBA images on white (default true) or on black.
+    pub white_background: bool,
+    /// Integer downscale factor of the images (default 1), box-filtered.
+    pub downscale: u32,
+    /// Split used for the held-out views: `"test"` (default) or `"val"`.
+    pub test_split: String,
+    /// Scene bounds `[min, max]` (default `[[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]]`).
+    pub aabb: [Vec3; 2],
+}
+
+impl Default for BlenderConfig {
+    fn default() -> Self {
+        BlenderConfig {
+            path: PathBuf::new(),
+            white_background: true,
+            downscale: 1,
+            test_split: "test".into(),
+            aabb: [[-1.5; 3], [1.5; 3]],
+        }
+    }
+}
+
+#[typetag::serde(name = "blender")]
+impl DatasetConfig for BlenderConfig {
+    fn open(&self, config_dir: &Path) -> Result<Scene, DatasetError> {
+        load_blender(self, &config_dir.join(&self.path))
+    }
+}
+
+fn default_config() -> Box<dyn DatasetConfig> {
+    Box::new(BlenderConfig::default())
+}
+
+inventory::submit! {
+    Registration::<dyn DatasetConfig>::new(
+        "blender",
+        "NeRF-synthetic layout (transforms_{train,test}.json, RGBA on white)",
+        default_config,
+    )
+}
+
+fn invalid(path: &Path, message: impl Into<String>) -> DatasetError {
+    DatasetError::Invalid {
+        path: path.to_path_buf(),
+        message: message.into(),
+    }
+}
+
+#[derive(Deserialize)]
+struct Transforms {
+    camera_angle_x: f64,
+    frames: Vec<Frame>,
+}
+
+#[derive(Deserialize)]
+struct Frame {
+    file_path: String,
+    transform_matrix: Vec<Vec<f64>>,
+}
+
+/// A frame with its image located and its pose checked.
+struct FrameFile {
+    image: PathBuf,
+    /// `file_path` without a leading `./` and extension, for the mask lookup.
+    rel: String,
+    cam_to_world: [[f32; 4]; 3],
+}
+
+fn read_split(root: &Path, split: &str) -> Result<(f64, Vec<FrameFile>), DatasetError> {
+    let path = root.join(format!("transforms_{split}.json"));
+    let text = std::fs::read_to_string(&path).map_err(|e| match e.kind() {
+        std::io::ErrorKind::NotFound => DatasetError::Missing {
+            path: path.clone(),
+            hint: "a Blender-layout scene needs transforms_train.json and transforms_test.json"
+                .into(),
+        },
+        _ => invalid(&path, format!("cannot read: {e}")),
+    })?;
+    let t: Transforms = serde_json::from_str(&text)
+        .map_err(|e| invalid(&path, format!("malformed transforms JSON: {e}")))?;
+    if !(t.camera_angle_x.is_finite()
+        && t.camera_angle_x > 0.0
+        && t.camera_angle_x < std::f64::consts::PI)
+    {
+        return Err(invalid(
+            &path,
+            format!("camera_angle_x must be in (0, π), got {}", t.camera_angle_x),
+        ));
+    }
+    let frames = t
+        .frames
+        .iter()
+        .enumerate()
+        .map(|(i, f)| {
+            let m = &f.transform_matrix;
+            if m.len() != 4 || m.iter().any(|r| r.len() != 4) {
+                return Err(invalid(
+                    &path,
+                    format!("frame {i}: transform_matrix must be 4x4"),
+                ));
+            }
+            if m.iter().flatten().any(|v| !v.is_finite()) {
+                return Err(invalid(
+                    &path,
+                    format!("frame {i}: transform_matrix has NaN or inf"),
+                ));
+            }
+            let mut cam_to_world = [[0.0f32; 4]; 3];
+            for r in 0..3 {
+                for c in 0..4 {
+                    cam_to_world[r][c] = m[r][c] as f32;
+                }
+            }
+            // Check the rotation here, where the error can name the JSON file and frame.
+            let probe = Camera {
+                width: 1,
+                height: 1,
+                fx: 1.0,
+                fy: 1.0,
+                cx: 0.5,
+                cy: 0.5,
+                cam_to_world,
+            };
+            probe
+                .validate()
+                .map_err(|e| invalid(&path, format!("frame {i}: transform_matrix: {e}")))?;
+            let rel = f.file_path.trim_start_matches("./").to_string();
+            let image = find_image(root, &rel).ok_or_else(|| DatasetError::Missing {
+                path: root.join(&rel),
+                hint: format!("image of frame {i} in {} (tried .png/.jpg)", path.display()),
+            })?;
+            let rel = match Path::new(&rel).extension() {
+                Some(_) if image == root.join(&rel) => {
+                    rel[..rel.len() - image.extension().map_or(0, |e| e.len() + 1)].to_string()
+                }
+                _ => rel,
+            };
+            Ok(FrameFile {
+                image,
+                rel,
+                cam_to_world,
+            })
+        })
+        .collect::<Result<_, _>>()?;
+    Ok((t.camera_angle_x, frames))
+}
+
+/// Reads an image, compositing its alpha (if any) on `background`.
+fn load_composited(path: &Path, background: f32) -> Result<RgbImage, DatasetError> {
+    let img = image::open(path).map_err(|e| {
+        invalid(
+            path,
+            format!("cannot decode image ({e}); re-export it as PNG or JPEG"),
+        )
+    })?;
+    let rgba = img.to_rgba32f();
+    let (w, h) = rgba.dimensions();
+    if w == 0 || h == 0 {
+        return Err(invalid(path, "image has zero size"));
+    }
+    let data = rgba
+        .pixels()
+        .flat_map(|p| {
+            let a = p.0[3];
+            [0, 1, 2].map(|k| p.0[k] * a + background * (1.0 - a))
+        })
+        .collect();
+    Ok(RgbImage {
+        width: w as usize,
+        height: h as usize,
+        data,
+    })
+}
+
+/// Loads a Blender-layout scene from folder `root` (the config's `path` already resolved).
+pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetError> {
+    if cfg.downscale == 0 {
+        return Err(invalid(root, "config key `downscale` must be ≥ 1"));
+    }
+    if cfg.test_split != "test" && cfg.test_split != "val" {
+        return Err(invalid(
+            root,
+            format!(
+                "config key `test_split` must be \"test\" or \"val\", got {:?}",
+                cfg.test_split
+            ),
+        ));
+    }
+    if !(0..3).all(|k| cfg.aabb[0][k] < cfg.aabb[1][k]) {
+        return Err(invalid(
+            root,
+            "config key `aabb`: min must be below max on every axis",
+        ));
+    }
+    if !root.is_dir() {
+        return Err(DatasetError::Missing {
+            path: root.to_path_buf(),
+            hint: "expected a Blender-layout scene folder with transforms_*.json; check `path`"
+                .into(),
+        });
+    }
+    let (angle_train, train_frames) = read_split(root, "train")?;
+    let (angle_test, test_frames) = read_split(root, &cfg.test_split)?;
+    if train_frames.is_empty() {
+        return Err(invalid(&root.join("transforms_train.json"), "no frames"));
+    }
+    let background = if cfg.white_background { 1.0 } else { 0.0 };
+    let n_train = train_frames.len();
+    let all: Vec<(f64, FrameFile)> = train_frames
+        .into_iter()
+        .map(|f| (angle_train, f))
+        .chain(test_frames.into_iter().map(|f| (angle_test, f)))
+        .collect();
+    let mask_root = root.join("masks");
+    let views: Vec<View> = all
+        .par_iter()
+        .map(|(angle, f)| {
+            let mut image = load_composited(&f.image, background)?;
+            let d = cfg.downscale as usize;
+            if d > 1 {
+                image = image.resized((image.width / d).max(1), (image.height / d).max(1));
+            }
+            let (w, h) = (image.width, image.height);
+            let focal = 0.5 * w as f64 / (0.5 * angle).tan();
+            let camera = Camera {
+                width: w as u32,
+                height: h as u32,
+                fx: focal as f32,
+                fy: focal as f32,
+                cx: w as f32 / 2.0,
+                cy: h as f32 / 2.0,
+                cam_to_world: f.cam_to_world,
+            };
+            camera
+                .validate()
+                .map_err(|e| invalid(&f.image, format!("pose of this frame: {e}")))?;
+            let rel = Path::new(&f.rel);
+            let mask_dir = mask_root.join(rel.parent().unwrap_or(Path::new("")));
+            let mask = match find_with_stem(&mask_dir, stem(rel)) {
+                Some(p) => Some(load_mask(&p, w, h)?),
+                None => None,
+            };
+            Ok(View {
+                name: f.rel.replace(['/', '\\'], "_"),
+                camera,
+                image,
+                mask,
+            })
+        })
+        .collect::<Result<_, DatasetError>>()?;
+    if mask_root.is_dir() && views.iter().all(|v| v.mask.is_none()) {
+        return Err(invalid(
+            &mask_root,
+            "no mask mirrors an image path; the mask of train/r_0.png must be masks/train/r_0.png",
+        ));
+    }
+    let name = root
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or("blender")
+        .to_string();
+    let centre = [0, 1, 2].map(|k| 0.5 * (cfg.aabb[0][k] + cfg.aabb[1][k]));
+    let render_path = orbit_path(&views[..n_train], centre, 40);
+    Ok(Scene {
+        name,
+        train: (0..n_train).collect(),
+        test: (n_train..views.len()).collect(),
+        views,
+        extent: SceneExtent::Bounded {
+            min: cfg.aabb[0],
+            max: cfg.aabb[1],
+        },
+        render_path,
+    })
+}
+
+/// A circle of `n` cameras around `centre` at the training cameras' mean distance and height
+/// (along their mean up axis), like the 40-view circle of NeRF's Blender loader; empty when the
+/// cameras sit on the axis.
+fn orbit_path(train: &[View], centre: Vec3, n: usize) -> Vec<Camera> {
+    let first = &train[0].camera;
+    let mut up = [0.0; 3];
+    let (mut dist, mut height) = (0.0, 0.0);
+    for v in train {
+        up = add(up, v.camera.rotate([0.0, 1.0, 0.0]));
+    }
+    let up = normalize(up);
+    for v in train {
+        let d = sub(v.camera.origin(), centre);
+        dist += dot(d, d).sqrt() / train.len() as f32;
+        height += dot(d, up) / train.len() as f32;
+    }
+    let d0 = sub(first.origin(), centre);
+    let e1 = normalize(sub(d0, scale3(up, dot(d0, up))));
+    let e2 = cross(up, e1);
+    let ring = (dist * dist - height * height).max(0.0).sqrt();
+    if ring < 1e-3 * dist.max(1e-6) || dot(e1, e1) < 0.5 {
+        return Vec::new();
+    }
+    (0..n)
+        .map(|i| {
+            let (s, c) = (std::f32::consts::TAU * i as f32 / n as f32).sin_cos();
+            let around = add(scale3(e1, ring * c), scale3(e2, ring * s));
+            let eye = add(add(centre, scale3(up, height)), around);
+            Camera::look_at(eye, centre, up, first.width, first.height, first.fx)
+        })
+        .collect()
+}
+
+fn scale3(v: Vec3, s: f32) -> Vec3 {
+    [v[0] * s, v[1] * s, v[2] * s]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::export::write_blender;
+    use crate::synthetic::{generate, Rig, SyntheticConfig, ROOM_MAX, ROOM_MIN};
+
+    fn temp_dir(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("sos-blender-{}-{name}", std::process::id()));
+        std::fs::remove_dir_all(&dir).ok();
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    fn room_cfg(dir: &Path) -> BlenderConfig {
+        BlenderConfig {
+            path: dir.to_path_buf(),
+            aabb: [ROOM_MIN, ROOM_MAX],
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn round_trip_of_the_synthetic_scene() {
+        let scene = generate(&SyntheticConfig {
+            rig: Rig::ObjectCentric,
+            width: 96,
+            height: 72,
+            views: 12,
+            ..Default::default()
+        });
+        let dir = temp_dir("rt");
+        write_blender(&scene, &dir).unwrap();
+        let loaded = load_blender(&room_cfg(&dir), &dir).unwrap();
+        loaded.validate().unwrap();
+        assert_eq!((loaded.train.len(), loaded.test.len()), (10, 2));
+        // Views come back train first, then test.
+        let order: Vec<usize> = scene.train.iter().chain(&scene.test).copied().collect();
+        for (&i, l) in order.iter().zip(&loaded.views) {
+            let o = &scene.views[i];
+            assert_eq!(
+                o.camera.cam_to_world, l.camera.cam_to_world,
+                "view {}",
+                o.name
+            );
+            assert!((o.camera.fx - l.camera.fx).abs() < 1e-3 && l.camera.cx == 48.0);
+            let err = o
+                .image
+                .data
+                .iter()
+                .zip(&l.image.data)
+                .map(|(p, q)| (p - q).abs())
+                .fold(0.0, f32::max);
+            assert!(err <= 0.5 / 255.0 + 1e-5, "view {}: {err}", o.name);
+            assert_eq!(o.mask, l.mask, "view {}", o.name);
+        }
+        assert_eq!(
+            loaded.extent,
+            SceneExtent::Bounded {
+                min: ROOM_MIN,
+                max: ROOM_MAX
+            }
+        );
+        assert_eq!(loaded.render_path.len(), 40);
+        for cam in &loaded.render_path {
+            cam.validate().unwrap();
+        }
+        // The val split is written as a copy of test.
+        let val = load_blender(
+            &BlenderConfig {
+                test_split: "val".into(),
+                ..room_cfg(&dir)
+            },
+            &dir,
+        )
+        .unwrap();
+        assert_eq!(val.test.len(), 2);
+        // Downscaling halves images and focal lengths; full-size masks are then an error.
+        let half = load_blender(
+            &BlenderConfig {
+                downscale: 2,
+                ..room_cfg(&dir)
+            },
+            &dir,
+        );
+        let err = half.map(|_| ()).unwrap_err().to_string();
+        assert!(err.contains("masks") && err.contains("resize"), "{err}");
+        std::fs::remove_dir_all(dir.join("masks")).unwrap();
+        let half = load_blender(
+            &BlenderConfig {
+                downscale: 2,
+                ..room_cfg(&dir)
+            },
+            &dir,
+        )
+        .unwrap();
+        assert_eq!(
+            (half.views[0].image.width, half.views[0].image.height),
+            (48, 36)
+        );
+        assert!((half.views[0].camera.fx - loaded.views[0].camera.fx / 2.0).abs() < 1e-3);
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    fn write_minimal(dir: &Path, json: &str) {
+        std::fs::write(dir.join("transforms_train.json"), json).unwrap();
+        let test = r#"{"camera_angle_x": 0.7, "frames": []}"#;
+        std::fs::write(dir.join("transforms_test.json"), test).unwrap();
+    }
+
+    const ONE_FRAME: &str = r#"{"camera_angle_x": 0.6911, "frames": [{"file_path": "./train/r_0",
+        "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]}]}"#;
+
+    #[test]
+    fn rgba_is_composited_on_the_background() {
+        let dir = temp_dir("rgba");
+        std::fs::create_dir_all(dir.join("train")).unwrap();
+        let mut img = image::RgbaImage::new(4, 2);
+        for (x, _, p) in img.enumerate_pixels_mut() {
+            *p = image::Rgba([255, 0, 0, if x < 2 { 0 } else { 255 }]);
+        }
+        img.save(dir.join("train/r_0.png")).unwrap();
+        write_minimal(&dir, ONE_FRAME);
+        let white = BlenderConfig {
+            path: dir.clone(),
+            ..Default::default()
+        };
+        let white = load_blender(&white, &dir).unwrap();
+        let v = &white.views[0];
+        assert_eq!(v.image.pixel(0, 0), [1.0, 1.0, 1.0]);
+        assert_eq!(v.image.pixel(3, 1), [1.0, 0.0, 0.0]);
+        assert!((v.camera.fx - 2.0 / (0.6911f32 / 2.0).tan()).abs() < 1e-4);
+        let black = BlenderConfig {
+            white_background: false,
+            path: dir.clone(),
+            ..Default::default()
+        };
+        let black = load_blender(&black, &dir).unwrap();
+        assert_eq!(black.views[0].image.pixel(0, 0), [0.0, 0.0, 0.0]);
+        assert!(black.test.is_empty() && black.views[0].mask.is_none());
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn hostile_inputs_are_errors_naming_the_file() {
+        let dir = temp_dir("bad");
+        std::fs::create_dir_all(dir.join("train")).unwrap();
+        image::RgbImage::new(4, 2)
+            .save(dir.join("train/r_0.png"))
+            .unwrap();
+        let open = || {
+            let cfg = BlenderConfig {
+                path: dir.clone(),
+                ..Default::default()
+            };
+            load_blender(&cfg, &dir)
+                .map(|_| ())
+                .unwrap_err()
+                .to_string()
+        };
+        let frame = |path: &str, matrix: &str| {
+            format!(
+                r#"{{"camera_angle_x": 0.7, "frames": [{{"file_path": "{path}",
+                    "transform_matrix": {matrix}}}]}}"#
+            )
+        };
+        let cases = [
+            (
+                "malformed",
+                r#"{"camera_angle_x": 0.7, "frames": [{"file_path": }"#.to_string(),
+                "transforms_train.json",
+            ),
+            (
+                "no frames",
+                r#"{"camera_angle_x": 0.7}"#.to_string(),
+                "transforms_train.json",
+            ),
+            (
+                "3x4 matrix",
+                frame("./train/r_0", "[[1,0,0,0],[0,1,0,0],[0,0,1,4]]"),
+                "transforms_train.json",
+            ),
+            (
+                "scaled rotation",
+                frame("./train/r_0", "[[2,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]"),
+                "transforms_train.json",
+            ),
+            (
+                "bad angle",
+                r#"{"camera_angle_x": -1, "frames": []}"#.to_string(),
+                "transforms_train.json",
+            ),
+            (
+                "missing image",
+                frame("./train/r_9", "[[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]"),
+                "r_9",
+            ),
+        ];
+        for (what, json, needle) in cases {
+            write_minimal(&dir, &json);
+            let err = open();
+            assert!(err.contains(needle), "{what}: {err}");
+        }
+        write_minimal(&dir, ONE_FRAME);
+        std::fs::create_dir_all(dir.join("masks/train")).unwrap();
+        image::GrayImage::new(3, 3)
+            .save(dir.join("masks/train/r_0.png"))
+            .unwrap();
+        let err = open();
+        assert!(err.contains("r_0.png") && err.contains("resize"), "{err}");
+        std::fs::remove_dir_all(dir.join("masks")).unwrap();
+        std::fs::write(dir.join("train/r_0.png"), b"garbage").unwrap();
+        let err = open();
+        assert!(err.contains("r_0.png"), "{err}");
+        std::fs::remove_file(dir.join("transforms_test.json")).unwrap();
+        let err = open();
+        assert!(
+            err.contains("transforms_test.json") && err.contains("missing"),
+            "{err}"
+        );
+        std::fs::remove_dir_all(dir).ok();
+    }
+}

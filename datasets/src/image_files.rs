@@ -1,0 +1,77 @@
+//! Finding and reading the image and mask files of a capture folder.
+
+use std::path::{Path, PathBuf};
+
+use sos_core::image::GrayImage;
+use sos_core::plugin::dataset::DatasetError;
+
+/// File extensions accepted as images, in order of preference when several files share a stem.
+pub const IMAGE_EXTENSIONS: [&str; 6] = ["png", "PNG", "jpg", "JPG", "jpeg", "JPEG"];
+
+/// Mask values above this are foreground.
+pub const MASK_THRESHOLD: f32 = 0.5;
+
+/// The image files of `dir`, sorted by file name (as LLFF's loader sorts them).
+pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>, DatasetError> {
+    let entries = std::fs::read_dir(dir).map_err(|e| DatasetError::Invalid {
+        path: dir.to_path_buf(),
+        message: format!("cannot list the folder: {e}"),
+    })?;
+    let mut files: Vec<PathBuf> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.is_file()
+                && p.extension()
+                    .and_then(|e| e.to_str())
+                    .is_some_and(|e| IMAGE_EXTENSIONS.contains(&e))
+        })
+        .collect();
+    files.sort_by(|a, b| a.file_name().cmp(&b.file_name()));
+    Ok(files)
+}
+
+/// `dir/stem.<ext>` for the first accepted extension that exists.
+pub fn find_with_stem(dir: &Path, stem: &str) -> Option<PathBuf> {
+    IMAGE_EXTENSIONS
+        .iter()
+        .map(|ext| dir.join(format!("{stem}.{ext}")))
+        .find(|p| p.is_file())
+}
+
+/// `dir/<name>` with an image extension: the name itself when it already names a file, else
+/// the name with each accepted extension appended.
+pub fn find_image(dir: &Path, name: &str) -> Option<PathBuf> {
+    let direct = dir.join(name);
+    if direct.is_file() {
+        return Some(direct);
+    }
+    IMAGE_EXTENSIONS
+        .iter()
+        .map(|ext| dir.join(format!("{name}.{ext}")))
+        .find(|p| p.is_file())
+}
+
+/// File stem as text (empty when the name is not UTF-8).
+pub fn stem(path: &Path) -> &str {
+    path.file_stem().and_then(|s| s.to_str()).unwrap_or("")
+}
+
+/// Reads a mask (grey, or luminance of colour), binarised at [`MASK_THRESHOLD`]; it must be
+/// `width` x `height`.
+pub fn load_mask(path: &Path, width: usize, height: usize) -> Result<GrayImage, DatasetError> {
+    let mut mask = GrayImage::load(path)?;
+    if (mask.width, mask.height) != (width, height) {
+        return Err(DatasetError::Invalid {
+            path: path.to_path_buf(),
+            message: format!(
+                "mask is {}x{} but its image is {width}x{height}; resize the mask to \
+                 {width}x{height} (nearest-neighbour)",
+                mask.width, mask.height
+            ),
+        });
+    }
+    for v in &mut mask.data {
+        *v = if *v > MASK_THRESHOLD { 1.0 } else { 0.0 };
+    }
+    Ok(mask)
+}
