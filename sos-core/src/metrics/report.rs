@@ -210,8 +210,8 @@ fn num2(v: Option<f64>) -> String {
     v.map_or_else(|| "-".into(), |v| format!("{v:.2}"))
 }
 
-/// Left-aligned first column, right-aligned numbers, a rule under the header and above the
-/// last summary rows is not needed for plain logs.
+/// Formats rows under a header: first column left-aligned, the others right-aligned, a dashed
+/// rule under the header.
 fn table<const N: usize>(header: &[&str; N], rows: &[[String; N]]) -> String {
     let mut widths = header.map(str::len);
     for row in rows {
