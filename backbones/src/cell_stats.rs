@@ -1,0 +1,582 @@
+//! `cell-stats`: a weight-free feature extractor, the offline fallback for DINO.
+//!
+//! Each `cell`×`cell` block of pixels becomes one feature vector of colour and texture
+//! statistics:
+//!
+//! | channels           | what                                                           |
+//! |--------------------|----------------------------------------------------------------|
+//! | 3                  | mean colour in an opponent space (red–green, yellow–blue, luma) |
+//! | 3                  | log standard deviation of the three opponent channels          |
+//! | `orientation_bins` | gradient-orientation histogram (unsigned, magnitude-weighted)  |
+//! | 1                  | log mean gradient magnitude (texture energy)                   |
+//!
+//! Every channel is centred and scaled with FIXED constants (typical values of natural
+//! images), never with per-image statistics, so the same surface gets the same features in
+//! every image and patch, and features take both signs: the cosine similarity of two cells is
+//! then high for the same surface and low (possibly negative) for different ones, which is
+//! what the contrastive losses and pair mining need.
+//!
+//! The saliency map is the colour distinctness of each cell from the cells on the image
+//! border (the usual background prior), normalised to `[0, 1]`.
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use sos_core::error::BuildError;
+use sos_core::image::RgbImage;
+use sos_core::plugin::{FeatureExtractor, FeatureExtractorConfig, FeatureMap};
+use sos_core::registry::Registration;
+
+const KIND: &str = "cell-stats";
+/// Bump when the features change, so cached teacher features are recomputed.
+const VERSION: u32 = 1;
+
+// Fixed normalisation constants (see the module docs for why they are not per-image).
+/// Scale of the chromatic opponent means (saturated colours reach about ±0.7).
+const CHROMA_SCALE: f32 = 0.2;
+/// Luma of mid-grey in the opponent space (`(0.5 + 0.5 + 0.5) / √3`).
+const LUMA_MID: f32 = 0.866_025_4;
+/// Scale of the luma mean.
+const LUMA_SCALE: f32 = 0.5;
+/// Standard deviation treated as "typical" (maps to 0) and the floor added before the log.
+const STD_TYPICAL: f32 = 0.08;
+const STD_FLOOR: f32 = 0.02;
+/// Mean gradient magnitude treated as "typical" and the floor added before the log.
+const ENERGY_TYPICAL: f32 = 0.04;
+const ENERGY_FLOOR: f32 = 0.005;
+/// Mean gradient magnitude at which the orientation histogram gets half its weight; flat
+/// cells have meaningless orientations, so their histogram features fade to zero.
+const ORIENTATION_HALF: f32 = 0.02;
+/// Scale of the centred orientation histogram (a single-orientation cell gets norm ≈ 2).
+const ORIENTATION_SCALE: f32 = 2.0;
+
+/// Settings of the `cell-stats` extractor (`[extractor] kind = "cell-stats"`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CellStatsConfig {
+    /// Cell side in pixels (one feature vector per cell); at least 2.
+    pub cell: usize,
+    /// Bins of the gradient-orientation histogram over `[0, π)`; 2 to 64.
+    pub orientation_bins: usize,
+    /// Weight of the mean-colour channels.
+    pub colour_weight: f32,
+    /// Weight of the colour-spread (standard deviation) channels.
+    pub spread_weight: f32,
+    /// Weight of the orientation-histogram channels.
+    pub orientation_weight: f32,
+    /// Weight of the texture-energy channel.
+    pub energy_weight: f32,
+}
+
+impl Default for CellStatsConfig {
+    fn default() -> Self {
+        CellStatsConfig {
+            cell: 8,
+            orientation_bins: 8,
+            colour_weight: 1.0,
+            spread_weight: 0.5,
+            orientation_weight: 1.0,
+            energy_weight: 0.5,
+        }
+    }
+}
+
+impl CellStatsConfig {
+    /// Checks the settings (also done by [`FeatureExtractorConfig::build`]).
+    pub fn validate(&self) -> Result<(), BuildError> {
+        let invalid = |key: &str, reason: &str| {
+            Err(BuildError::Invalid { kind: KIND.into(), key: key.into(), reason: reason.into() })
+        };
+        if !(2..=4096).contains(&self.cell) {
+            return invalid("cell", "must be between 2 and 4096 pixels");
+        }
+        if !(2..=64).contains(&self.orientation_bins) {
+            return invalid("orientation_bins", "must be between 2 and 64");
+        }
+        let weights = [
+            ("colour_weight", self.colour_weight),
+            ("spread_weight", self.spread_weight),
+            ("orientation_weight", self.orientation_weight),
+            ("energy_weight", self.energy_weight),
+        ];
+        for (key, w) in weights {
+            if !(w.is_finite() && w >= 0.0) {
+                return invalid(key, "must be a finite number >= 0");
+            }
+        }
+        if weights.iter().all(|&(_, w)| w == 0.0) {
+            return invalid("colour_weight", "at least one weight must be positive");
+        }
+        Ok(())
+    }
+
+    /// Number of feature channels: 3 + 3 + `orientation_bins` + 1.
+    pub fn channels(&self) -> usize {
+        7 + self.orientation_bins
+    }
+}
+
+#[typetag::serde(name = "cell-stats")]
+impl FeatureExtractorConfig for CellStatsConfig {
+    fn build(&self) -> Result<Box<dyn FeatureExtractor>, BuildError> {
+        self.validate()?;
+        Ok(Box::new(CellStats { config: self.clone() }))
+    }
+}
+
+fn default_config() -> Box<dyn FeatureExtractorConfig> {
+    Box::new(CellStatsConfig::default())
+}
+
+inventory::submit! {
+    Registration::<dyn FeatureExtractorConfig>::new(
+        KIND,
+        "weight-free colour and texture statistics per cell (offline fallback for DINO)",
+        default_config,
+    )
+}
+
+/// The `cell-stats` extractor; build it from a validated [`CellStatsConfig`].
+#[derive(Debug, Clone)]
+pub struct CellStats {
+    config: CellStatsConfig,
+}
+
+impl CellStats {
+    /// Builds the extractor, validating the settings.
+    pub fn new(config: CellStatsConfig) -> Result<Self, BuildError> {
+        config.validate()?;
+        Ok(CellStats { config })
+    }
+
+    /// Features of one image. An image with no pixels (or whose buffer does not match its
+    /// size) gives a 1x1 grid of zeros.
+    pub fn extract_one(&self, image: &RgbImage) -> FeatureMap {
+        let channels = self.config.channels();
+        let (w, h) = (image.width, image.height);
+        if w == 0 || h == 0 || image.data.len() != w * h * 3 {
+            return FeatureMap {
+                channels,
+                height: 1,
+                width: 1,
+                data: vec![0.0; channels],
+                cls: vec![0.0; channels],
+                saliency: Some(vec![0.0]),
+            };
+        }
+        let cell = self.config.cell;
+        // Floor division like a ViT's patch grid; smaller images get one cell over all of it.
+        let (gh, gw) = ((h / cell).max(1), (w / cell).max(1));
+        let (ch, cw) = (cell.min(h), cell.min(w));
+
+        let (magnitude, orientation) = gradients(image);
+        let cells: Vec<Vec<f32>> = (0..gh * gw)
+            .into_par_iter()
+            .map(|i| {
+                let (r0, c0) = ((i / gw) * ch, (i % gw) * cw);
+                self.cell_features(image, &magnitude, &orientation, r0, c0, ch, cw)
+            })
+            .collect();
+
+        let n = cells.len();
+        let mut data = vec![0.0; channels * n];
+        let mut cls = vec![0.0; channels];
+        for (i, f) in cells.iter().enumerate() {
+            for (k, &v) in f.iter().enumerate() {
+                data[k * n + i] = v;
+                cls[k] += v / n as f32;
+            }
+        }
+        let saliency = border_distinctness(&cells, gh, gw, &self.config);
+        FeatureMap { channels, height: gh, width: gw, data, cls, saliency: Some(saliency) }
+    }
+
+    /// Feature vector of the `ch`×`cw` cell whose top-left pixel is `(r0, c0)`.
+    #[allow(clippy::too_many_arguments)]
+    fn cell_features(
+        &self,
+        image: &RgbImage,
+        magnitude: &[f32],
+        orientation: &[f32],
+        r0: usize,
+        c0: usize,
+        ch: usize,
+        cw: usize,
+    ) -> Vec<f32> {
+        let cfg = &self.config;
+        let bins = cfg.orientation_bins;
+        let mut sum = [0.0f64; 3];
+        let mut sum_sq = [0.0f64; 3];
+        let mut hist = vec![0.0f64; bins];
+        let mut energy = 0.0f64;
+        for r in r0..r0 + ch {
+            for c in c0..c0 + cw {
+                let o = opponent(image.pixel(c, r));
+                for k in 0..3 {
+                    sum[k] += o[k] as f64;
+                    sum_sq[k] += (o[k] as f64) * (o[k] as f64);
+                }
+                let i = r * image.width + c;
+                let m = magnitude[i] as f64;
+                energy += m;
+                // Soft binning between the two nearest bin centres, wrapping at π.
+                let pos = orientation[i] as f64 / std::f64::consts::PI * bins as f64 - 0.5;
+                let lo = pos.floor();
+                let frac = pos - lo;
+                let b0 = (lo as isize).rem_euclid(bins as isize) as usize;
+                hist[b0] += m * (1.0 - frac);
+                hist[(b0 + 1) % bins] += m * frac;
+            }
+        }
+        let count = (ch * cw) as f64;
+        let mut f = Vec::with_capacity(cfg.channels());
+        let mean: Vec<f32> = sum.iter().map(|s| (s / count) as f32).collect();
+        f.push(cfg.colour_weight * mean[0] / CHROMA_SCALE);
+        f.push(cfg.colour_weight * mean[1] / CHROMA_SCALE);
+        f.push(cfg.colour_weight * (mean[2] - LUMA_MID) / LUMA_SCALE);
+        for k in 0..3 {
+            let var = (sum_sq[k] / count - (sum[k] / count).powi(2)).max(0.0);
+            let std = var.sqrt() as f32;
+            f.push(cfg.spread_weight * 0.5 * ((std + STD_FLOOR) / STD_TYPICAL).ln());
+        }
+        let mean_energy = (energy / count) as f32;
+        let confidence = mean_energy / (mean_energy + ORIENTATION_HALF);
+        let total: f64 = hist.iter().sum();
+        for &v in &hist {
+            let frac = if total > 0.0 { (v / total) as f32 } else { 1.0 / bins as f32 };
+            let centred = frac - 1.0 / bins as f32;
+            f.push(cfg.orientation_weight * ORIENTATION_SCALE * confidence * centred);
+        }
+        f.push(cfg.energy_weight * 0.5 * ((mean_energy + ENERGY_FLOOR) / ENERGY_TYPICAL).ln());
+        f
+    }
+}
+
+impl FeatureExtractor for CellStats {
+    fn extract(&self, images: &[RgbImage]) -> Vec<FeatureMap> {
+        images.par_iter().map(|img| self.extract_one(img)).collect()
+    }
+
+    fn identity(&self) -> String {
+        let c = &self.config;
+        format!(
+            "{KIND}/v{VERSION} cell={} orientation_bins={} colour_weight={} spread_weight={} \
+             orientation_weight={} energy_weight={}",
+            c.cell,
+            c.orientation_bins,
+            c.colour_weight,
+            c.spread_weight,
+            c.orientation_weight,
+            c.energy_weight
+        )
+    }
+}
+
+/// Opponent colour space: red–green, yellow–blue, luma (an orthonormal rotation of RGB).
+#[inline]
+fn opponent([r, g, b]: [f32; 3]) -> [f32; 3] {
+    [
+        (r - g) * std::f32::consts::FRAC_1_SQRT_2,
+        (r + g - 2.0 * b) / 6.0f32.sqrt(),
+        (r + g + b) / 3.0f32.sqrt(),
+    ]
+}
+
+/// Per-pixel gradient magnitude and unsigned orientation in `[0, π)` of the mean of the
+/// RGB channels (central differences, edges clamped), over the whole image so that
+/// neighbouring cells see the same gradients at their shared edges.
+fn gradients(image: &RgbImage) -> (Vec<f32>, Vec<f32>) {
+    let (w, h) = (image.width, image.height);
+    let luma: Vec<f32> = image.data.chunks_exact(3).map(|p| (p[0] + p[1] + p[2]) / 3.0).collect();
+    let mut magnitude = vec![0.0; w * h];
+    let mut orientation = vec![0.0; w * h];
+    magnitude.par_chunks_mut(w).zip(orientation.par_chunks_mut(w)).enumerate().for_each(
+        |(r, (mag, ori))| {
+            let (up, down) = (r.saturating_sub(1), (r + 1).min(h - 1));
+            for c in 0..w {
+                let (left, right) = (c.saturating_sub(1), (c + 1).min(w - 1));
+                let gx = (luma[r * w + right] - luma[r * w + left]) * 0.5;
+                let gy = (luma[down * w + c] - luma[up * w + c]) * 0.5;
+                mag[c] = (gx * gx + gy * gy).sqrt();
+                let mut theta = gy.atan2(gx);
+                if theta < 0.0 {
+                    theta += std::f32::consts::PI;
+                }
+                if theta >= std::f32::consts::PI {
+                    theta -= std::f32::consts::PI;
+                }
+                ori[c] = theta;
+            }
+        },
+    );
+    (magnitude, orientation)
+}
+
+/// Saliency of each cell: mean distance of its colour features (mean and spread, fixed
+/// scales, unweighted) to the nearest eighth of the border cells, min–max normalised to
+/// `[0, 1]` (all zeros when every cell is alike). A cell that resembles some part of the
+/// border scores low; an object unlike the whole border scores high.
+fn border_distinctness(
+    cells: &[Vec<f32>],
+    gh: usize,
+    gw: usize,
+    cfg: &CellStatsConfig,
+) -> Vec<f32> {
+    // Undo the user weights so saliency does not depend on them.
+    let unweight = |w: f32| if w > 0.0 { 1.0 / w } else { 0.0 };
+    let (cw, sw) = (unweight(cfg.colour_weight), unweight(cfg.spread_weight));
+    let desc: Vec<[f32; 6]> = cells
+        .iter()
+        .map(|f| [f[0] * cw, f[1] * cw, f[2] * cw, f[3] * sw, f[4] * sw, f[5] * sw])
+        .collect();
+    let border: Vec<usize> = (0..gh * gw)
+        .filter(|&i| {
+            let (r, c) = (i / gw, i % gw);
+            r == 0 || c == 0 || r + 1 == gh || c + 1 == gw
+        })
+        .collect();
+    let m = (border.len() / 8).max(1);
+    let raw: Vec<f32> = desc
+        .par_iter()
+        .map(|d| {
+            let mut dists: Vec<f32> = border
+                .iter()
+                .map(|&b| {
+                    d.iter().zip(&desc[b]).map(|(x, y)| (x - y) * (x - y)).sum::<f32>().sqrt()
+                })
+                .collect();
+            dists.select_nth_unstable_by(m - 1, f32::total_cmp);
+            dists[..m].iter().sum::<f32>() / m as f32
+        })
+        .collect();
+    let lo = raw.iter().copied().fold(f32::INFINITY, f32::min);
+    let hi = raw.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    if hi - lo > 1e-9 {
+        raw.iter().map(|v| (v - lo) / (hi - lo)).collect()
+    } else {
+        vec![0.0; raw.len()]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    fn extractor() -> CellStats {
+        CellStats::new(CellStatsConfig::default()).unwrap()
+    }
+
+    fn image(w: usize, h: usize, mut f: impl FnMut(usize, usize) -> [f32; 3]) -> RgbImage {
+        let mut img = RgbImage::new(w, h);
+        for r in 0..h {
+            for c in 0..w {
+                img.set_pixel(c, r, f(c, r));
+            }
+        }
+        img
+    }
+
+    fn cell_vec(map: &FeatureMap, r: usize, c: usize) -> Vec<f32> {
+        let n = map.height * map.width;
+        (0..map.channels).map(|k| map.data[k * n + r * map.width + c]).collect()
+    }
+
+    fn cosine(a: &[f32], b: &[f32]) -> f32 {
+        let dot: f32 = a.iter().zip(b).map(|(x, y)| x * y).sum();
+        let na: f32 = a.iter().map(|x| x * x).sum::<f32>().sqrt();
+        let nb: f32 = b.iter().map(|x| x * x).sum::<f32>().sqrt();
+        dot / (na * nb).max(1e-12)
+    }
+
+    #[test]
+    fn shapes_follow_the_cell_grid() {
+        let ex = extractor();
+        let img = image(37, 21, |c, r| [c as f32 / 37.0, r as f32 / 21.0, 0.3]);
+        let map = ex.extract_one(&img);
+        assert_eq!((map.channels, map.height, map.width), (15, 2, 4));
+        assert_eq!(map.data.len(), 15 * 8);
+        assert_eq!(map.cls.len(), 15);
+        assert_eq!(map.saliency.as_ref().unwrap().len(), 8);
+        assert!(map.data.iter().all(|v| v.is_finite()));
+        // cls is the mean over cells.
+        for k in 0..15 {
+            let mean = map.data[k * 8..(k + 1) * 8].iter().sum::<f32>() / 8.0;
+            assert!((map.cls[k] - mean).abs() < 1e-5);
+        }
+        // Smaller than one cell (in one or both directions): a single row / cell.
+        let tiny = ex.extract_one(&image(5, 3, |_, _| [0.2, 0.4, 0.6]));
+        assert_eq!((tiny.height, tiny.width), (1, 1));
+        let strip = ex.extract_one(&image(40, 3, |_, _| [0.2, 0.4, 0.6]));
+        assert_eq!((strip.height, strip.width), (1, 5));
+        // Degenerate input does not panic.
+        let empty = ex.extract_one(&RgbImage::new(0, 0));
+        assert_eq!((empty.height, empty.width, empty.data.len()), (1, 1, 15));
+        let broken = RgbImage { width: 10, height: 10, data: vec![0.5; 7] };
+        assert_eq!(ex.extract_one(&broken).data, vec![0.0; 15]);
+        // Other settings change the channel count.
+        let cfg = CellStatsConfig { cell: 4, orientation_bins: 12, ..Default::default() };
+        let map = CellStats::new(cfg).unwrap().extract_one(&img);
+        assert_eq!((map.channels, map.height, map.width), (19, 5, 9));
+    }
+
+    #[test]
+    fn deterministic_and_batch_independent() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+        let a = image(64, 48, |_, _| [rng.gen(), 0.5, 0.2]);
+        let b = image(48, 64, |c, r| [((c + r) % 5) as f32 / 5.0, 0.1, 0.9]);
+        let ex = extractor();
+        let both = ex.extract(&[a.clone(), b.clone()]);
+        assert_eq!(both, ex.extract(&[a.clone(), b.clone()]));
+        assert_eq!(both[0], ex.extract_one(&a));
+        assert_eq!(both[1], ex.extract_one(&b));
+    }
+
+    /// Mean cosine over same-region and cross-region cell pairs of a left/right split image.
+    fn same_vs_cross(map: &FeatureMap) -> (f32, f32) {
+        let (mut same, mut cross) = (Vec::new(), Vec::new());
+        let cells: Vec<(usize, Vec<f32>)> = (0..map.height)
+            .flat_map(|r| (0..map.width).map(move |c| (r, c)))
+            .map(|(r, c)| ((c >= map.width / 2) as usize, cell_vec(map, r, c)))
+            .collect();
+        for (i, (ri, fi)) in cells.iter().enumerate() {
+            for (rj, fj) in &cells[i + 1..] {
+                if ri == rj { &mut same } else { &mut cross }.push(cosine(fi, fj));
+            }
+        }
+        let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len() as f32;
+        (mean(&same), mean(&cross))
+    }
+
+    #[test]
+    fn same_texture_is_more_similar_than_different_texture() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        let mut noise = move || rng.gen_range(-0.05f32..0.05);
+        // Left: horizontal brown stripes (period 6, not aligned with the cells); right:
+        // vertical grey-green stripes of period 5.
+        let img = image(128, 64, |c, r| {
+            let n = noise();
+            if c < 64 {
+                let v = if r % 6 < 3 { 0.6 } else { 0.3 };
+                [v + n, v * 0.7 + n, v * 0.4 + n]
+            } else {
+                let v = if c % 5 < 2 { 0.7 } else { 0.4 };
+                [v * 0.8 + n, v + n, v * 0.8 + n]
+            }
+        });
+        let (same, cross) = same_vs_cross(&extractor().extract_one(&img));
+        eprintln!("colour+texture: same {same:.3}, cross {cross:.3}");
+        assert!(same > 0.9, "same-region cosine {same}");
+        assert!(same - cross > 0.5, "same {same} vs cross {cross}");
+
+        // Same colours, only the stripe orientation differs: texture alone must separate.
+        let img = image(128, 64, |c, r| {
+            let n = noise();
+            let v = if c < 64 { (r % 6 < 3) as u8 } else { (c % 6 < 3) as u8 } as f32 * 0.6 + 0.2;
+            [v + n, v + n, v + n]
+        });
+        let (same, cross) = same_vs_cross(&extractor().extract_one(&img));
+        eprintln!("orientation only: same {same:.3}, cross {cross:.3}");
+        assert!(same > 0.9, "same-region cosine {same}");
+        assert!(same - cross > 0.3, "orientation only: same {same} vs cross {cross}");
+    }
+
+    #[test]
+    fn same_surface_gets_the_same_features_in_different_images() {
+        // Fixed normalisation: the rest of the image must not change a cell's features.
+        let stripes = |c: usize, r: usize, other: [f32; 3]| {
+            if c < 64 {
+                [0.2 + 0.5 * (r % 4 < 2) as u8 as f32, 0.3, 0.25]
+            } else {
+                other
+            }
+        };
+        let a = extractor().extract_one(&image(128, 32, |c, r| stripes(c, r, [0.9, 0.1, 0.1])));
+        let b = extractor().extract_one(&image(128, 32, |c, r| stripes(c, r, [0.0, 0.2, 1.0])));
+        // Cells 0..7 do not touch the boundary at column 64 (gradients reach one pixel).
+        for r in 0..4 {
+            for c in 0..7 {
+                assert_eq!(cell_vec(&a, r, c), cell_vec(&b, r, c), "cell ({r}, {c})");
+            }
+        }
+        assert_ne!(cell_vec(&a, 0, 12), cell_vec(&b, 0, 12));
+        // Features take both signs (centred), so unrelated cells can have negative cosine.
+        assert!(a.data.iter().any(|&v| v < 0.0) && a.data.iter().any(|&v| v > 0.0));
+    }
+
+    #[test]
+    fn saliency_is_high_on_a_distinct_central_object() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+        // Noisy grey-blue background, a red disc in the middle.
+        let img = image(96, 80, |c, r| {
+            let (dx, dy) = (c as f32 - 48.0, r as f32 - 40.0);
+            let n: f32 = rng.gen_range(-0.1..0.1);
+            if dx * dx + dy * dy < 20.0 * 20.0 {
+                [0.85 + n * 0.5, 0.15, 0.1]
+            } else {
+                [0.4 + n, 0.45 + n, 0.55 + n]
+            }
+        });
+        let map = extractor().extract_one(&img);
+        let sal = map.saliency.as_ref().unwrap();
+        assert!(sal.iter().all(|v| (0.0..=1.0).contains(v)));
+        let (gh, gw) = (map.height, map.width);
+        let at = |r: usize, c: usize| sal[r * gw + c];
+        let centre = (at(4, 5) + at(4, 6) + at(5, 5) + at(5, 6)) / 4.0;
+        let border: Vec<f32> = (0..gh * gw)
+            .filter(|&i| i / gw == 0 || i % gw == 0 || i / gw == gh - 1 || i % gw == gw - 1)
+            .map(|i| sal[i])
+            .collect();
+        let border_mean = border.iter().sum::<f32>() / border.len() as f32;
+        eprintln!("saliency: centre {centre:.3}, border mean {border_mean:.3}");
+        assert!(centre > 0.8, "centre saliency {centre}");
+        assert!(border_mean < 0.2, "border saliency {border_mean}");
+        // A uniform image has no salient cell.
+        let flat = extractor().extract_one(&image(32, 32, |_, _| [0.5; 3]));
+        assert!(flat.saliency.unwrap().iter().all(|&v| v == 0.0));
+    }
+
+    #[test]
+    fn toml_round_trip_and_validation() {
+        let cfg: Box<dyn FeatureExtractorConfig> =
+            toml::from_str("kind = \"cell-stats\"\ncell = 16\norientation_weight = 2.0\n").unwrap();
+        let built = cfg.build().unwrap();
+        assert!(built.identity().starts_with("cell-stats/v1 cell=16 "), "{}", built.identity());
+        assert!(built.identity().contains("orientation_weight=2 "), "{}", built.identity());
+        let text = toml::to_string(&cfg).unwrap();
+        assert!(text.contains("kind = \"cell-stats\""), "{text}");
+        let back: Box<dyn FeatureExtractorConfig> = toml::from_str(&text).unwrap();
+        assert_eq!(back.build().unwrap().identity(), built.identity());
+        // Defaults fill in missing keys; unknown keys are rejected with their name.
+        let default: Box<dyn FeatureExtractorConfig> =
+            toml::from_str("kind = \"cell-stats\"").unwrap();
+        assert_eq!(default.build().unwrap().identity(), extractor().identity());
+        let err =
+            toml::from_str::<Box<dyn FeatureExtractorConfig>>("kind = \"cell-stats\"\ncells = 4")
+                .unwrap_err();
+        assert!(err.to_string().contains("cells"), "{err}");
+        // Out-of-range values fail at build time, naming the key.
+        for (text, key) in [
+            ("cell = 1", "cell"),
+            ("orientation_bins = 1", "orientation_bins"),
+            ("spread_weight = -1.0", "spread_weight"),
+            ("colour_weight = 0.0\nspread_weight = 0.0\norientation_weight = 0.0\nenergy_weight = 0.0", "colour_weight"),
+        ] {
+            let cfg: Box<dyn FeatureExtractorConfig> =
+                toml::from_str(&format!("kind = \"cell-stats\"\n{text}")).unwrap();
+            match cfg.build() {
+                Err(BuildError::Invalid { key: k, .. }) => assert_eq!(k, key),
+                other => panic!("{text}: expected Invalid, got {:?}", other.map(|e| e.identity())),
+            }
+        }
+    }
+
+    #[test]
+    fn registered_with_a_working_default() {
+        let reg = sos_core::registry::find::<dyn FeatureExtractorConfig>("cell-stats").unwrap();
+        assert!(!reg.summary.is_empty());
+        let ex = (reg.default_config)().build().unwrap();
+        assert_eq!(ex.identity(), extractor().identity());
+        let maps = ex.extract(&[image(16, 16, |_, _| [0.1, 0.2, 0.3])]);
+        assert_eq!((maps[0].height, maps[0].width), (2, 2));
+    }
+}
