@@ -540,9 +540,12 @@ mod tests {
         assert_close("negative", &[term("appearance/negative")], &[fx.scalar("neg_term")], 1e-5, 0.0);
         assert_close("total", &[v.total], &[fx.scalar("total")], 1e-5, 0.0);
         let grad: Vec<f64> = grad.iter().map(|&g| f64::from(g)).collect();
-        // The reference gradient was computed in f32: entries far below the largest carry its
-        // round-off (~1e-10 absolute), so they are compared against 5% of the largest entry.
-        assert_close("grad_seg", &grad, &fx.array("grad_seg").1, 1e-5, 0.05);
+        // The reference gradient was computed in f32, whose accumulation round-off reaches
+        // ~1e-5 of an entry for entries well below the largest. So: 1e-5 relative to the
+        // largest entry (normwise), and 5e-5 elementwise above 0.1% of the largest.
+        let reference = fx.array("grad_seg").1;
+        assert_close("grad_seg (normwise)", &grad, &reference, 1e-5, 1.0);
+        assert_close("grad_seg (elementwise)", &grad, &reference, 5e-5, 1e-3);
     }
 
     #[test]
