@@ -173,20 +173,17 @@ pub fn points_from_depth(
     out
 }
 
-/// Per-tile accumulators of one row in pass 2.
-struct RowAcc {
-    loss: [f32; LANES],
-    /// `∂/∂ŝa[c]` lane sums, `d` of them.
-    ga: Vec<[f32; LANES]>,
-}
+/// Largest logit channel count supported (channels are zero-padded to a compiled width).
+pub const MAX_D_SEG: usize = 64;
 
-/// Inputs of pass 2 shared by all rows of one patch pair.
-struct PairView<'a> {
+/// Inputs of pass 2 shared by all rows of one patch pair, with `D` logit channels (zero
+/// channels pad the real ones: they add nothing to the L1 distance and get no gradient).
+struct PairView<'a, const D: usize> {
     pa: [&'a [f32]; 3],
     pb: [&'a [f32]; 3],
-    /// Normalised logits of patch a / b, `d` slices of `m`.
-    sa: Vec<&'a [f32]>,
-    sb: Vec<&'a [f32]>,
+    /// Normalised logits of patch a / b, `D` slices of `m`.
+    sa: [&'a [f32]; D],
+    sb: [&'a [f32]; D],
     kernel: InverseL1Kernel,
 }
 
@@ -220,32 +217,37 @@ fn g_row_sum(a: [f32; 3], pb: [&[f32]; 3], k: InverseL1Kernel) -> f64 {
     total
 }
 
+/// Lane accumulators of one row over one tile in pass 2.
+struct RowAcc<const D: usize> {
+    loss: [f32; LANES],
+    ga: [[f32; LANES]; D],
+}
+
 /// Pass 2 for `W` consecutive columns at `q0` of row `p`: accumulates `S·(G_c − b)` into
-/// `acc.loss`, and `∂/∂L1 · sign` (before the `1/M` factor) into `acc.ga` and `gb`.
+/// `acc.loss`, and `∂/∂L1 · sign` (before the `1/M` factor) into `acc.ga` and `gb` (`[D, m]`).
 #[inline(always)]
-fn pair_block<const W: usize>(
-    v: &PairView,
-    p: usize,
+fn pair_block<const W: usize, const D: usize>(
+    v: &PairView<D>,
+    a: ([f32; 3], [f32; D]),
     row_shift: f32,
     q0: usize,
-    acc: &mut RowAcc,
+    acc: &mut RowAcc<D>,
     gb: &mut [f32],
 ) {
     let k = v.kernel;
     let m = v.pb[0].len();
+    let (pa, sa) = a;
     let (bx, by, bz) = (&v.pb[0][q0..q0 + W], &v.pb[1][q0..q0 + W], &v.pb[2][q0..q0 + W]);
-    let (ax, ay, az) = (v.pa[0][p], v.pa[1][p], v.pa[2][p]);
     let mut l1 = [0.0f32; LANES];
-    for (sac, sbc) in v.sa.iter().zip(&v.sb) {
-        let a = sac[p];
-        let b = &sbc[q0..q0 + W];
+    for c in 0..D {
+        let b = &v.sb[c][q0..q0 + W];
         for j in 0..W {
-            l1[j] += (a - b[j]).abs();
+            l1[j] += (sa[c] - b[j]).abs();
         }
     }
     let mut coef = [0.0f32; LANES];
     for j in 0..W {
-        let g = k.of_distance((ax - bx[j]).abs() + (ay - by[j]).abs() + (az - bz[j]).abs());
+        let g = k.of_distance((pa[0] - bx[j]).abs() + (pa[1] - by[j]).abs() + (pa[2] - bz[j]).abs());
         let centred = g + row_shift;
         let t = 1.0 / (l1[j] + k.epsilon);
         // S > 0 always (the zero clamp is a no-op); the cap passes no gradient.
@@ -254,22 +256,20 @@ fn pair_block<const W: usize>(
         // ∂(S·Gc)/∂L1 = −t²·Gc below the cap; the loss carries a minus sign, so +t²·Gc.
         coef[j] = if t <= k.cap { centred * t * t } else { 0.0 };
     }
-    for (c, (sac, sbc)) in v.sa.iter().zip(&v.sb).enumerate() {
-        let a = sac[p];
-        let b = &sbc[q0..q0 + W];
-        let gbc = &mut gb[c * m + q0..c * m + q0 + W];
-        let gac = &mut acc.ga[c];
+    for c in 0..D {
+        let b = &v.sb[c][q0..q0 + W];
+        // Signs first into a local array: keeps the loop free of stores that could alias.
+        let mut sg = [0.0f32; LANES];
         for j in 0..W {
-            let diff = a - b[j];
-            let sg = if diff > 0.0 {
-                coef[j]
-            } else if diff < 0.0 {
-                -coef[j]
-            } else {
-                0.0
-            };
-            gac[j] += sg;
-            gbc[j] -= sg;
+            let diff = sa[c] - b[j];
+            sg[j] = (if diff > 0.0 { coef[j] } else { 0.0 }) - (if diff < 0.0 { coef[j] } else { 0.0 });
+        }
+        for j in 0..W {
+            acc.ga[c][j] += sg[j];
+        }
+        let gbc = &mut gb[c * m + q0..c * m + q0 + W];
+        for j in 0..W {
+            gbc[j] -= sg[j];
         }
     }
 }
@@ -278,9 +278,9 @@ fn pair_block<const W: usize>(
 struct PairAcc {
     /// `Σ S·(G_c − b)`.
     loss: f64,
-    /// Gradient w.r.t. `ŝa` (`[d, m]`), before the `1/M` factor.
+    /// Gradient w.r.t. `ŝa` (`[D, m]`), before the `1/M` factor.
     ga: Vec<f64>,
-    /// Gradient w.r.t. `ŝb` (`[d, m]`), before the `1/M` factor.
+    /// Gradient w.r.t. `ŝb` (`[D, m]`), before the `1/M` factor.
     gb: Vec<f64>,
 }
 
@@ -302,24 +302,22 @@ impl PairAcc {
 }
 
 /// Pass 2 over rows `rows` of one patch pair; `row_shift[p] = mean(G) − b − mean_q G[p,:]`.
-fn pair_rows(v: &PairView, rows: std::ops::Range<usize>, row_shift: &[f32], out: &mut PairAcc) {
-    let d = v.sa.len();
+fn pair_rows<const D: usize>(v: &PairView<D>, rows: std::ops::Range<usize>, row_shift: &[f32], out: &mut PairAcc) {
     let m = v.pb[0].len();
-    let mut gb = vec![0.0f32; d * m];
-    let mut acc = RowAcc { loss: [0.0; LANES], ga: vec![[0.0; LANES]; d] };
+    let mut gb = vec![0.0f32; D * m];
     for p in rows {
-        let (mut loss, mut ga) = (0.0f64, vec![0.0f64; d]);
+        let a = ([v.pa[0][p], v.pa[1][p], v.pa[2][p]], std::array::from_fn(|c| v.sa[c][p]));
+        let (mut loss, mut ga) = (0.0f64, [0.0f64; D]);
         for t0 in (0..m).step_by(TILE) {
             let t1 = (t0 + TILE).min(m);
-            acc.loss = [0.0; LANES];
-            acc.ga.iter_mut().for_each(|g| *g = [0.0; LANES]);
+            let mut acc = RowAcc { loss: [0.0; LANES], ga: [[0.0; LANES]; D] };
             let mut q = t0;
             while q + LANES <= t1 {
-                pair_block::<LANES>(v, p, row_shift[p], q, &mut acc, &mut gb);
+                pair_block::<LANES, D>(v, a, row_shift[p], q, &mut acc, &mut gb);
                 q += LANES;
             }
             while q < t1 {
-                pair_block::<1>(v, p, row_shift[p], q, &mut acc, &mut gb);
+                pair_block::<1, D>(v, a, row_shift[p], q, &mut acc, &mut gb);
                 q += 1;
             }
             loss += acc.loss.iter().map(|&x| f64::from(x)).sum::<f64>();
@@ -337,6 +335,53 @@ fn pair_rows(v: &PairView, rows: std::ops::Range<usize>, row_shift: &[f32], out:
     }
 }
 
+/// Pass 2 of all patch pairs with `D ≥ d` (zero-padded) channels. Returns `Σ S·(G_c − b)` and
+/// adds the gradient w.r.t. the normalised logits (before `1/M`) into `grad_hat` (`[n, d, m]`).
+#[allow(clippy::too_many_arguments)]
+fn pass2<const D: usize>(
+    points: &[f32],
+    shat: &[f32],
+    d: usize,
+    m: usize,
+    partner: &[usize],
+    row_sums: &[Vec<f64>],
+    shift: f64,
+    global_mean: f64,
+    kernel: InverseL1Kernel,
+    grad_hat: &mut [f64],
+) -> f64 {
+    let zeros = vec![0.0f32; m];
+    let pts = |k: usize| -> [&[f32]; 3] { std::array::from_fn(|c| &points[(k * 3 + c) * m..(k * 3 + c + 1) * m]) };
+    let sl = |k: usize| -> [&[f32]; D] {
+        std::array::from_fn(|c| if c < d { &shat[(k * d + c) * m..(k * d + c + 1) * m] } else { &zeros[..] })
+    };
+    let mut loss = 0.0f64;
+    for (k, sums) in row_sums.iter().enumerate() {
+        let j = partner[k];
+        let view = PairView::<D> { pa: pts(k), pb: pts(j), sa: sl(k), sb: sl(j), kernel };
+        let row_shift: Vec<f32> = sums.iter().map(|&s| (global_mean - shift - s / m as f64) as f32).collect();
+        let acc = (0..m.div_ceil(ROWS))
+            .into_par_iter()
+            .fold(
+                || PairAcc::new(D, m),
+                |mut acc, chunk| {
+                    pair_rows(&view, chunk * ROWS..((chunk + 1) * ROWS).min(m), &row_shift, &mut acc);
+                    acc
+                },
+            )
+            .reduce(|| PairAcc::new(D, m), PairAcc::merge);
+        loss += acc.loss;
+        // Only the first d (real) channels carry gradient.
+        for (g, a) in grad_hat[k * d * m..(k + 1) * d * m].iter_mut().zip(&acc.ga) {
+            *g += a;
+        }
+        for (g, b) in grad_hat[j * d * m..(j + 1) * d * m].iter_mut().zip(&acc.gb) {
+            *g += b;
+        }
+    }
+    loss
+}
+
 /// One geometry term `helper(X, X[partner], s, s[partner], shift)` over all pixel pairs, where
 /// `X` are the points. Adds `grad_scale · ∂term/∂logits` into `grad_logits` (if given) and
 /// returns the term.
@@ -344,7 +389,8 @@ fn pair_rows(v: &PairView, rows: std::ops::Range<usize>, row_shift: &[f32], out:
 /// Layouts: `points` `[n, 3, P, P]`, `logits` `[n, d_seg, P, P]` (as `shape`).
 ///
 /// # Panics
-/// If the buffers do not match `shape` or a partner index is out of range.
+/// If the buffers do not match `shape`, a partner index is out of range, or
+/// `d_seg > MAX_D_SEG`.
 #[allow(clippy::too_many_arguments)]
 pub fn geometry_term(
     points: &[f32],
@@ -361,6 +407,7 @@ pub fn geometry_term(
     assert_eq!(logits.len(), shape.logits_len(), "geometry: logits are not [n, d_seg, P, P]");
     assert_eq!(partner.len(), n, "geometry: need one partner per patch");
     assert!(partner.iter().all(|&j| j < n), "geometry: partner index out of range");
+    assert!(d <= MAX_D_SEG, "geometry: at most {MAX_D_SEG} logit channels are supported");
     if n == 0 || m == 0 {
         return 0.0;
     }
@@ -378,7 +425,6 @@ pub fn geometry_term(
         shat32.extend(y.iter().map(|&v| v as f32));
         shat.push((y, den));
     }
-    let sl = |k: usize| -> Vec<&[f32]> { (0..d).map(|c| &shat32[(k * d + c) * m..(k * d + c + 1) * m]).collect() };
 
     // Pass 1: row sums of G and the global mean over the whole batch.
     let row_sums: Vec<Vec<f64>> = (0..n)
@@ -394,32 +440,25 @@ pub fn geometry_term(
     let total = n as f64 * m as f64 * m as f64;
     let global_mean = row_sums.iter().flatten().sum::<f64>() / total;
 
-    // Pass 2: loss and gradient w.r.t. the normalised logits.
-    let mut loss = 0.0f64;
+    // Pass 2: loss and gradient w.r.t. the normalised logits, compiled for a few channel
+    // counts (padded with zero channels up to the next one).
     let mut grad_hat = vec![0.0f64; logits.len()];
-    for (k, sums) in row_sums.iter().enumerate() {
-        let j = partner[k];
-        let view = PairView { pa: pts(k), pb: pts(j), sa: sl(k), sb: sl(j), kernel };
-        let row_shift: Vec<f32> =
-            sums.iter().map(|&s| (global_mean - f64::from(shift) - s / m as f64) as f32).collect();
-        let acc = (0..m.div_ceil(ROWS))
-            .into_par_iter()
-            .fold(
-                || PairAcc::new(d, m),
-                |mut acc, chunk| {
-                    pair_rows(&view, chunk * ROWS..((chunk + 1) * ROWS).min(m), &row_shift, &mut acc);
-                    acc
-                },
-            )
-            .reduce(|| PairAcc::new(d, m), PairAcc::merge);
-        loss += acc.loss;
-        for (g, a) in grad_hat[k * d * m..(k + 1) * d * m].iter_mut().zip(&acc.ga) {
-            *g += a;
-        }
-        for (g, b) in grad_hat[j * d * m..(j + 1) * d * m].iter_mut().zip(&acc.gb) {
-            *g += b;
-        }
+    let args = (points, &shat32[..], d, m, partner, &row_sums[..], f64::from(shift), global_mean, kernel);
+    macro_rules! run {
+        ($dd:literal) => {
+            pass2::<$dd>(args.0, args.1, args.2, args.3, args.4, args.5, args.6, args.7, args.8, &mut grad_hat)
+        };
     }
+    let loss = match d {
+        1 => run!(1),
+        2 => run!(2),
+        3 => run!(3),
+        4 => run!(4),
+        5..=8 => run!(8),
+        9..=16 => run!(16),
+        17..=32 => run!(32),
+        _ => run!(64),
+    };
 
     if let Some(grad) = grad_logits {
         assert_eq!(grad.len(), logits.len(), "geometry: grad_logits is not [n, d_seg, P, P]");
@@ -652,6 +691,12 @@ mod tests {
             let naive = naive_term(&pts, &lg, case.shape, partner, f64::from(shift), 0.05, 15.0);
             assert!((tiled - naive).abs() <= 1e-6 * naive.abs().max(1.0), "tiled {tiled} vs naive {naive}");
         }
+        // Zero-padded channel counts (5 → 8).
+        let case = random_case(7, 2, 5, 6);
+        let (pts, lg) = (widen(&case.points), widen(&case.logits));
+        let tiled = geometry_term(&case.points, &case.logits, case.shape, &case.neg, 2.0, k, 1.0, None);
+        let naive = naive_term(&pts, &lg, case.shape, &case.neg, 2.0, 0.05, 15.0);
+        assert!((tiled - naive).abs() <= 1e-6 * naive.abs().max(1.0), "tiled {tiled} vs naive {naive}");
         // A size that is not a multiple of the lanes or the tile, with more channels.
         let case = random_case(6, 2, 3, 27);
         let (pts, lg) = (widen(&case.points), widen(&case.logits));
