@@ -210,6 +210,7 @@ pub struct HelperOutput {
 ///
 /// # Panics
 /// If the buffer lengths do not match `n`, `c_feat`, `c_seg` and `m`.
+#[allow(clippy::too_many_arguments)]
 pub fn stego_helper(
     fa: &[f64],
     fb: &[f64],
