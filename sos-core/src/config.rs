@@ -187,6 +187,9 @@ pub struct TrainConfig {
     pub samples_per_ray: usize,
     /// Stop marching a ray once its transmittance is below this; 0 disables.
     pub early_stop: f32,
+    /// Skip colour and gradients of samples whose compositing weight (from a density-only
+    /// pass) is at most this (DVGO's fast colour threshold); 0 keeps every sample.
+    pub weight_threshold: f32,
     /// Use the occupancy grid to skip empty space.
     pub occupancy: bool,
     /// Occupancy cells per side.
@@ -209,6 +212,7 @@ impl Default for TrainConfig {
             final_lr_factor: 0.1,
             samples_per_ray: 384,
             early_stop: 1e-4,
+            weight_threshold: 0.0,
             occupancy: true,
             occupancy_resolution: 128,
             occupancy_every: 16,
@@ -272,6 +276,9 @@ impl RunConfig {
         }
         if !(0.0..1.0).contains(&t.early_stop) {
             return Err(invalid("train.early_stop", "must be in [0, 1)"));
+        }
+        if !(0.0..1.0).contains(&t.weight_threshold) {
+            return Err(invalid("train.weight_threshold", "must be in [0, 1)"));
         }
         if t.occupancy && !(8..=512).contains(&t.occupancy_resolution) {
             return Err(invalid("train.occupancy_resolution", "must be in 8..=512"));

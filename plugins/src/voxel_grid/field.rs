@@ -175,44 +175,80 @@ impl RadianceField for VoxelGridField {
     ) {
         let ch = self.grid.channels;
         let n_sh = self.n_sh;
-        // Per-sample gradients of the interpolated channels, in parallel.
-        let per_sample: Vec<(Option<Corners>, Vec<f32>)> = positions
-            .par_iter()
-            .zip(directions.par_iter())
-            .zip(grad_density.par_iter().zip(grad_rgb.par_iter()))
-            .map(|((p, dir), (gd, gc))| {
-                let Some(corners) = self.corners(*p) else { return (None, Vec::new()) };
+        let n = positions.len();
+        // Pass 1, parallel over samples: corners and the gradient of the interpolated channels.
+        let mut corners: Vec<Option<Corners>> = vec![None; n];
+        let mut g = vec![0.0f32; n * ch];
+        corners
+            .par_chunks_mut(CHUNK)
+            .zip(g.par_chunks_mut(CHUNK * ch))
+            .enumerate()
+            .for_each(|(chunk, (corners, g))| {
                 let mut feat = vec![0.0; ch];
-                self.grid.gather(&corners, &mut feat);
                 let mut basis = vec![0.0; n_sh];
-                sh_basis(self.config.sh_degree, *dir, &mut basis);
-                let mut g = vec![0.0; ch];
-                // d softplus(x)/dx = sigmoid(x).
-                g[0] = gd * sigmoid(feat[0] + self.shift) / self.voxel_length;
-                for k in 0..3 {
-                    let coef = &feat[1 + k * n_sh..1 + (k + 1) * n_sh];
-                    let x: f32 = coef.iter().zip(&basis).map(|(a, b)| a * b).sum();
-                    let s = sigmoid(x);
-                    let gx = gc[k] * s * (1.0 - s);
-                    for l in 0..n_sh {
-                        g[1 + k * n_sh + l] = gx * basis[l];
+                for (j, c) in corners.iter_mut().enumerate() {
+                    let i = chunk * CHUNK + j;
+                    *c = self.corners(positions[i]);
+                    let Some(cs) = c else { continue };
+                    self.grid.gather(cs, &mut feat);
+                    sh_basis(self.config.sh_degree, directions[i], &mut basis);
+                    let gi = &mut g[j * ch..(j + 1) * ch];
+                    // d softplus(x)/dx = sigmoid(x).
+                    gi[0] = grad_density[i] * sigmoid(feat[0] + self.shift) / self.voxel_length;
+                    for k in 0..3 {
+                        let coef = &feat[1 + k * n_sh..1 + (k + 1) * n_sh];
+                        let x: f32 = coef.iter().zip(&basis).map(|(a, b)| a * b).sum();
+                        let s = sigmoid(x);
+                        let gx = grad_rgb[i][k] * s * (1.0 - s);
+                        for l in 0..n_sh {
+                            gi[1 + k * n_sh + l] = gx * basis[l];
+                        }
                     }
                 }
-                (Some(corners), g)
+            });
+        // Pass 2, parallel over vertex ranges: each task owns a slab of vertices and scatters
+        // only the corners that fall in it, so no two tasks write the same gradient.
+        let n_vertices = self.grid.n_vertices();
+        let n_tasks = rayon::current_num_threads().max(1) * 2;
+        let per_task = n_vertices.div_ceil(n_tasks);
+        let new_touched: Vec<Vec<u32>> = self
+            .grads
+            .par_chunks_mut(per_task * ch)
+            .zip(self.touched_flag.par_chunks_mut(per_task))
+            .enumerate()
+            .map(|(task, (grads, flags))| {
+                let lo = (task * per_task) as u32;
+                let hi = lo + flags.len() as u32;
+                let mut touched = Vec::new();
+                for (i, c) in corners.iter().enumerate() {
+                    let Some(c) = c else { continue };
+                    // Corner indices grow with k, so a quick range test skips most samples.
+                    if c.index[7] < lo || c.index[0] >= hi {
+                        continue;
+                    }
+                    let gi = &g[i * ch..(i + 1) * ch];
+                    for k in 0..8 {
+                        let v = c.index[k];
+                        if v < lo || v >= hi {
+                            continue;
+                        }
+                        let local = (v - lo) as usize;
+                        if !flags[local] {
+                            flags[local] = true;
+                            touched.push(v);
+                        }
+                        let w = c.weight[k];
+                        let dst = &mut grads[local * ch..(local + 1) * ch];
+                        for j in 0..ch {
+                            dst[j] += w * gi[j];
+                        }
+                    }
+                }
+                touched
             })
             .collect();
-        // Scatter into the grid gradient (sequential: vertices are shared between samples).
-        for (corners, g) in per_sample {
-            let Some(c) = corners else { continue };
-            for k in 0..8 {
-                let v = c.index[k];
-                self.touch(v);
-                let w = c.weight[k];
-                let dst = &mut self.grads[v as usize * ch..][..ch];
-                for j in 0..ch {
-                    dst[j] += w * g[j];
-                }
-            }
+        for t in new_touched {
+            self.touched.extend(t);
         }
     }
 
@@ -272,6 +308,12 @@ impl RadianceField for VoxelGridField {
             return true;
         }
         false
+    }
+
+    fn detail_fraction(&self) -> f32 {
+        let now: usize = self.grid.res.iter().sum();
+        let full: usize = self.config.resolution.iter().sum();
+        now as f32 / full as f32
     }
 
     fn seg_input_dim(&self) -> usize {

@@ -61,6 +61,13 @@ pub trait RadianceField: Send + Sync {
         false
     }
 
+    /// Fraction of its final spatial detail the field currently resolves (grids growing
+    /// coarse-to-fine return their current/final resolution); the renderer scales the number
+    /// of candidate samples by it, so coarse stages are cheap.
+    fn detail_fraction(&self) -> f32 {
+        1.0
+    }
+
     /// Width of the per-sample segmentation input.
     fn seg_input_dim(&self) -> usize;
 

@@ -31,6 +31,9 @@ pub struct RaySamples<'a> {
     pub extra: &'a [f32],
     /// Number of extra channels.
     pub d_extra: usize,
+    /// Optical depth of samples dropped just before each sample (weight thresholding keeps
+    /// transmittance exact); empty when nothing was dropped.
+    pub skipped_tau: &'a [f32],
 }
 
 /// Composited values of one ray.
@@ -44,10 +47,14 @@ pub struct RayColor {
     pub acc: f32,
 }
 
-/// Computes the weights `w` of one ray (`weights.len() == sigma.len()`).
-pub fn weights(sigma: &[f32], delta: &[f32], weights: &mut [f32]) {
+/// Computes the weights `w` of one ray (`weights.len() == sigma.len()`); `skipped_tau` as in
+/// [`RaySamples`].
+pub fn weights(sigma: &[f32], delta: &[f32], skipped_tau: &[f32], weights: &mut [f32]) {
     let mut optical_depth = 0.0f32;
     for k in 0..sigma.len() {
+        if !skipped_tau.is_empty() {
+            optical_depth += skipped_tau[k];
+        }
         let tau = sigma[k] * delta[k];
         let transmittance = (-optical_depth).exp();
         weights[k] = -(-tau).exp_m1() * transmittance;
@@ -60,7 +67,7 @@ pub fn composite(s: &RaySamples, w: &mut [f32], extra_out: &mut [f32]) -> RayCol
     let n = s.sigma.len();
     debug_assert!(s.delta.len() == n && s.t.len() == n && s.rgb.len() == n);
     debug_assert_eq!(s.extra.len(), n * s.d_extra);
-    weights(s.sigma, s.delta, w);
+    weights(s.sigma, s.delta, s.skipped_tau, w);
     let mut out = RayColor::default();
     extra_out.fill(0.0);
     for k in 0..n {
@@ -122,6 +129,9 @@ pub fn composite_backward(
     // `grad_sigma` as scratch.
     let mut optical_depth = 0.0f32;
     for k in 0..n {
+        if !s.skipped_tau.is_empty() {
+            optical_depth += s.skipped_tau[k];
+        }
         optical_depth += s.sigma[k] * s.delta[k];
         grad_sigma[k] = (-optical_depth).exp();
     }
@@ -202,7 +212,7 @@ mod tests {
         let (g_sigma_ref, g_rgb_ref, g_seg_ref) = (want("grad_sigma"), want("grad_rgb"), want("grad_seg"));
         for r in 0..n_rays {
             let (sigma, delta, z, rgb, seg) = ray_inputs(&f, r);
-            let s = RaySamples { sigma: &sigma, delta: &delta, t: &z, rgb: &rgb, extra: &seg, d_extra: 2 };
+            let s = RaySamples { sigma: &sigma, delta: &delta, t: &z, rgb: &rgb, extra: &seg, d_extra: 2, skipped_tau: &[] };
             let mut w = vec![0.0; n];
             let mut seg_map = [0.0; 2];
             let out = composite(&s, &mut w, &mut seg_map);
@@ -253,7 +263,7 @@ mod tests {
         let g_extra = [0.7f32, -1.3];
         let g = RayGrad { rgb: [0.3, -0.2, 0.5], depth: 0.8, acc: -0.4, extra: &g_extra };
         let loss = |sigma: &[f32], rgb: &[[f32; 3]], extra: &[f32]| -> f64 {
-            let s = RaySamples { sigma, delta: &delta, t: &t, rgb, extra, d_extra: 2 };
+            let s = RaySamples { sigma, delta: &delta, t: &t, rgb, extra, d_extra: 2, skipped_tau: &[] };
             let mut w = vec![0.0; 5];
             let mut e = [0.0; 2];
             let o = composite(&s, &mut w, &mut e);
@@ -261,7 +271,7 @@ mod tests {
                 + (g.depth * o.depth + g.acc * o.acc) as f64
                 + (g_extra[0] * e[0] + g_extra[1] * e[1]) as f64
         };
-        let s = RaySamples { sigma: &sigma, delta: &delta, t: &t, rgb: &rgb, extra: &extra, d_extra: 2 };
+        let s = RaySamples { sigma: &sigma, delta: &delta, t: &t, rgb: &rgb, extra: &extra, d_extra: 2, skipped_tau: &[] };
         let mut w = vec![0.0; 5];
         let mut e = [0.0; 2];
         let o = composite(&s, &mut w, &mut e);

@@ -66,15 +66,21 @@ pub fn render(
     record: bool,
     rng: &mut impl Rng,
 ) -> Rendered {
+    let timer = std::time::Instant::now();
     let candidates = march_parallel(ctx, rays, options.march, rng);
+    let t_march = timer.elapsed().as_secs_f64();
     let n_candidates = candidates.len();
 
     // Density-only pass to find where each ray terminates and which weights matter.
     let mut sigma = vec![0.0; candidates.len()];
     field.density(&candidates.positions, &mut sigma);
+    // For each candidate: kept or not, and the optical depth of dropped candidates since the
+    // previous kept one (so the kept samples' transmittance stays exact).
     let mut keep = vec![false; candidates.len()];
+    let mut skipped_before = vec![0.0f32; candidates.len()];
     for r in 0..candidates.n_rays() {
         let mut optical = 0.0f32;
+        let mut skipped = 0.0f32;
         for i in candidates.range(r) {
             let transmittance = (-optical).exp();
             if options.early_stop > 0.0 && transmittance < options.early_stop {
@@ -82,15 +88,37 @@ pub fn render(
             }
             let tau = sigma[i] * candidates.delta[i];
             let w = -(-tau).exp_m1() * transmittance;
-            keep[i] = w > options.min_weight || options.min_weight <= 0.0;
+            keep[i] = options.min_weight <= 0.0 || w > options.min_weight;
+            if keep[i] {
+                skipped_before[i] = skipped;
+                skipped = 0.0;
+            } else {
+                skipped += tau;
+            }
             optical += tau;
         }
     }
-    let (samples, _) = candidates.filter(|i| keep[i]);
+    let t_density = timer.elapsed().as_secs_f64();
+    let (mut samples, kept) = candidates.filter(|i| keep[i]);
+    if options.min_weight > 0.0 {
+        samples.skipped_tau = kept.iter().map(|&i| skipped_before[i as usize]).collect();
+    }
+    let t_filter = timer.elapsed().as_secs_f64();
 
     let mut density = vec![0.0; samples.len()];
     let mut rgb = vec![[0.0; 3]; samples.len()];
     let tape = field.forward(&samples.positions, &samples.directions, &mut density, &mut rgb, record);
+    if std::env::var("SOS_PROFILE").is_ok() {
+        eprintln!(
+            "render: march {:.3} density {:.3} filter {:.3} forward {:.3} (candidates {}, kept {})",
+            t_march,
+            t_density - t_march,
+            t_filter - t_density,
+            timer.elapsed().as_secs_f64() - t_filter,
+            n_candidates,
+            samples.len()
+        );
+    }
     Rendered { samples, density, rgb, weights: Vec::new(), colors: Vec::new(), tape, n_candidates }
 }
 
@@ -116,6 +144,7 @@ fn concat(parts: Vec<Samples>) -> Samples {
         delta: Vec::with_capacity(total),
         positions: Vec::with_capacity(total),
         directions: Vec::with_capacity(total),
+        skipped_tau: Vec::new(),
     };
     for p in parts {
         let base = out.t.len() as u32;
@@ -145,6 +174,7 @@ impl Rendered {
                 rgb: &self.rgb[range.clone()],
                 extra: &extra[range.start * d_extra..range.end * d_extra],
                 d_extra,
+                skipped_tau: if self.samples.skipped_tau.is_empty() { &[] } else { &self.samples.skipped_tau[range.clone()] },
             };
             self.colors[r] = composite::composite(
                 &s,
@@ -176,6 +206,7 @@ impl Rendered {
                 rgb: &self.rgb[range.clone()],
                 extra: &extra[range.start * d_extra..range.end * d_extra],
                 d_extra,
+                skipped_tau: if self.samples.skipped_tau.is_empty() { &[] } else { &self.samples.skipped_tau[range.clone()] },
             };
             composite::composite_backward(
                 &s,

@@ -26,6 +26,9 @@ pub struct Samples {
     pub positions: Vec<Vec3>,
     /// Unit view direction (the ray's).
     pub directions: Vec<Vec3>,
+    /// Optical depth of dropped samples just before each sample (see
+    /// [`crate::render::composite::RaySamples::skipped_tau`]); empty when none were dropped.
+    pub skipped_tau: Vec<f32>,
 }
 
 impl Samples {

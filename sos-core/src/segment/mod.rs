@@ -2,4 +2,7 @@
 //! with the collaborative contrastive loss, and mask inference with k-means.
 
 pub mod defaults;
+pub mod head;
 pub mod patches;
+pub mod teacher;
+pub mod train;

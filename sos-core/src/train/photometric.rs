@@ -23,6 +23,8 @@ pub struct StepStats {
     pub psnr: f64,
     /// Surviving samples per ray.
     pub samples_per_ray: f64,
+    /// Mean opacity of the batch's rays.
+    pub opacity: f64,
 }
 
 /// PSNR of a mean squared error on `[0, 1]` images.
@@ -91,16 +93,34 @@ pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<S
             continue;
         }
         bad_steps = 0;
+        let timer = Instant::now();
         let (g_sigma, g_rgb, _) = r.composite_backward(&[], 0, &grads);
+        let t_cb = timer.elapsed().as_secs_f64();
         let tape = r.tape.take();
         session.field.backward(&r.samples.positions, &r.samples.directions, tape, &g_sigma, &g_rgb);
+        let t_fb = timer.elapsed().as_secs_f64();
         session.field.regularize();
+        let t_reg = timer.elapsed().as_secs_f64();
         let progress = session.step as f32 / total.max(1) as f32;
         let lr_factor = session.config.train.final_lr_factor.powf(progress);
         session.field.step(lr_factor);
+        if std::env::var("SOS_PROFILE").is_ok() {
+            eprintln!(
+                "backward: composite {:.3} field {:.3} regularize {:.3} step {:.3}",
+                t_cb,
+                t_fb - t_cb,
+                t_reg - t_fb,
+                timer.elapsed().as_secs_f64() - t_reg
+            );
+        }
         session.step += 1;
 
-        last = StepStats { mse, psnr: psnr_of_mse(mse), samples_per_ray: r.samples.len() as f64 / n_rays as f64 };
+        last = StepStats {
+            mse,
+            psnr: psnr_of_mse(mse),
+            samples_per_ray: r.samples.len() as f64 / n_rays as f64,
+            opacity: r.colors.iter().map(|c| c.acc as f64).sum::<f64>() / n_rays as f64,
+        };
         smoothed_psnr = if smoothed_psnr == 0.0 { last.psnr } else { 0.9 * smoothed_psnr + 0.1 * last.psnr };
         let rays_per_s = (session.step as f64 * n_rays as f64) / started.elapsed().as_secs_f64().max(1e-9);
         bar.set_message(format!(
@@ -108,6 +128,13 @@ pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<S
             mse, smoothed_psnr, rays_per_s, last.samples_per_ray
         ));
         bar.set_position(session.step as u64);
+        if !show_progress && (session.step % (total / 10).max(1) == 0 || session.step == total) {
+            eprintln!(
+                "stage 1 step {}/{}: loss {:.5} psnr {:.2} dB, opacity {:.3}, {:.0} rays/s, {:.0} samples/ray, {:.0} s",
+                session.step, total, mse, smoothed_psnr, last.opacity, rays_per_s, last.samples_per_ray,
+                started.elapsed().as_secs_f64()
+            );
+        }
         let every = session.config.train.checkpoint_every;
         if every > 0 && session.step % every == 0 && session.step < total {
             session.save_checkpoint()?;

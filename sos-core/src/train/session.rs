@@ -135,13 +135,15 @@ impl Session {
         }
     }
 
-    /// Render settings for training (`stratified`) or evaluation.
+    /// Render settings for training (`stratified`) or evaluation. The candidate count follows
+    /// the field's current detail, so coarse stages of a growing grid march coarsely.
     pub fn render_options(&self, stratified: bool) -> RenderOptions {
         let t = &self.config.train;
+        let steps = ((t.samples_per_ray as f32 * self.field.detail_fraction()).round() as usize).max(8);
         RenderOptions {
-            march: MarchOptions { steps: t.samples_per_ray, stratified },
+            march: MarchOptions { steps, stratified },
             early_stop: t.early_stop,
-            min_weight: 0.0,
+            min_weight: if stratified { t.weight_threshold } else { 0.0 },
         }
     }
 
