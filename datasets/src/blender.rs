@@ -33,6 +33,9 @@ pub struct BlenderConfig {
     pub test_split: String,
     /// Scene bounds `[min, max]` (default `[[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]]`).
     pub aabb: [Vec3; 2],
+    /// Distance from the cameras below which nothing is sampled (NeRF uses 2.0 for its
+    /// synthetic scenes).
+    pub near: f32,
 }
 
 impl Default for BlenderConfig {
@@ -43,6 +46,7 @@ impl Default for BlenderConfig {
             downscale: 1,
             test_split: "test".into(),
             aabb: [[-1.5; 3], [1.5; 3]],
+            near: 2.0,
         }
     }
 }
@@ -297,6 +301,7 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
             min: cfg.aabb[0],
             max: cfg.aabb[1],
         },
+        near: cfg.near,
         render_path,
     })
 }
@@ -355,6 +360,7 @@ mod tests {
         BlenderConfig {
             path: dir.to_path_buf(),
             aabb: [ROOM_MIN, ROOM_MAX],
+            near: 0.0,
             ..Default::default()
         }
     }

@@ -350,6 +350,8 @@ pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
             width: width as f32,
             height: height as f32,
         },
+        // The forward-facing extent's own near plane already bounds the samples.
+        near: 0.0,
         render_path,
     })
 }

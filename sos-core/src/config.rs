@@ -187,6 +187,9 @@ pub struct TrainConfig {
     pub samples_per_ray: usize,
     /// Stop marching a ray once its transmittance is below this; 0 disables.
     pub early_stop: f32,
+    /// Weight of the per-sample colour loss `Σ_k w_k ‖c_k − C‖²` (DVGO's `rgbper`), which
+    /// clears semi-transparent fog quickly; 0 disables.
+    pub sample_color_weight: f32,
     /// Skip colour and gradients of samples whose compositing weight (from a density-only
     /// pass) is at most this (DVGO's fast colour threshold); 0 keeps every sample.
     pub weight_threshold: f32,
@@ -212,6 +215,7 @@ impl Default for TrainConfig {
             final_lr_factor: 0.1,
             samples_per_ray: 384,
             early_stop: 1e-4,
+            sample_color_weight: 0.1,
             weight_threshold: 0.0,
             occupancy: true,
             occupancy_resolution: 128,
@@ -276,6 +280,9 @@ impl RunConfig {
         }
         if !(0.0..1.0).contains(&t.early_stop) {
             return Err(invalid("train.early_stop", "must be in [0, 1)"));
+        }
+        if !(t.sample_color_weight >= 0.0 && t.sample_color_weight.is_finite()) {
+            return Err(invalid("train.sample_color_weight", "must be zero or positive"));
         }
         if !(0.0..1.0).contains(&t.weight_threshold) {
             return Err(invalid("train.weight_threshold", "must be in [0, 1)"));

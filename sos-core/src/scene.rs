@@ -83,6 +83,10 @@ pub struct Scene {
     pub test: Vec<usize>,
     /// Spatial extent.
     pub extent: SceneExtent,
+    /// Distance from any camera below which there is no content: samples are never placed
+    /// closer. Space right in front of the cameras is seen by no other training camera, so a
+    /// field would otherwise fill it with fog that only novel views reveal.
+    pub near: f32,
     /// A smooth novel camera path for `sos render` (may be empty).
     pub render_path: Vec<Camera>,
 }

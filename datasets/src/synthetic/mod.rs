@@ -154,11 +154,13 @@ pub fn generate(cfg: &SyntheticConfig) -> Scene {
     match cfg.rig {
         Rig::ObjectCentric => {
             let cams = rig::object_centric(cfg.views, w, h, &mut rng);
+            let mut near = f32::INFINITY;
             let views = cams
                 .into_iter()
                 .enumerate()
                 .map(|(i, cam)| {
                     let r = render::render_view(&world, &cam, cam.origin(), cam.forward());
+                    near = near.min(r.depth_range[0]);
                     view(i, cam, r)
                 })
                 .collect();
@@ -174,6 +176,8 @@ pub fn generate(cfg: &SyntheticConfig) -> Scene {
                 train,
                 test,
                 extent,
+                // Z-depth bounds distance along any ray from below.
+                near: 0.9 * near,
                 render_path,
             }
         }
@@ -217,6 +221,7 @@ pub fn generate(cfg: &SyntheticConfig) -> Scene {
                 train,
                 test,
                 extent,
+                near,
                 render_path,
             }
         }

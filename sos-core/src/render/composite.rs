@@ -98,6 +98,9 @@ pub struct RayGrad<'a> {
     pub acc: f32,
     /// `∂L/∂extra`, `[d_extra]` (empty when there are no extra channels).
     pub extra: &'a [f32],
+    /// Direct gradients of per-sample losses with respect to each weight `w_k`, `[n]`
+    /// (empty when there are none), e.g. DVGO's per-sample colour loss `Σ w_k‖c_k − C‖²`.
+    pub weights: &'a [f32],
 }
 
 /// Backward pass of [`composite`]: writes `∂L/∂σ`, `∂L/∂rgb` and `∂L/∂extra` per sample.
@@ -121,6 +124,9 @@ pub fn composite_backward(
         let mut gw = g.rgb[0] * c[0] + g.rgb[1] * c[1] + g.rgb[2] * c[2] + g_depth * s.t[k] + g.acc;
         if d > 0 {
             gw += g.extra.iter().zip(&s.extra[k * d..(k + 1) * d]).map(|(a, b)| a * b).sum::<f32>();
+        }
+        if !g.weights.is_empty() {
+            gw += g.weights[k];
         }
         gw
     };
@@ -233,6 +239,7 @@ mod tests {
                 depth: w_depth.data[r] as f32,
                 acc: w_acc.data[r] as f32,
                 extra: &g_extra,
+                weights: &[],
             };
             let mut gs = vec![0.0; n];
             let mut grgb = vec![[0.0; 3]; n];
@@ -261,13 +268,15 @@ mod tests {
         let rgb: Vec<[f32; 3]> = (0..5).map(|k| [0.1 * k as f32, 0.5, 0.9 - 0.1 * k as f32]).collect();
         let extra: Vec<f32> = (0..10).map(|i| (i as f32 * 0.37).sin()).collect();
         let g_extra = [0.7f32, -1.3];
-        let g = RayGrad { rgb: [0.3, -0.2, 0.5], depth: 0.8, acc: -0.4, extra: &g_extra };
+        let g_weights = [0.2f32, -0.1, 0.5, 0.3, -0.7];
+        let g = RayGrad { rgb: [0.3, -0.2, 0.5], depth: 0.8, acc: -0.4, extra: &g_extra, weights: &g_weights };
         let loss = |sigma: &[f32], rgb: &[[f32; 3]], extra: &[f32]| -> f64 {
             let s = RaySamples { sigma, delta: &delta, t: &t, rgb, extra, d_extra: 2, skipped_tau: &[] };
             let mut w = vec![0.0; 5];
             let mut e = [0.0; 2];
             let o = composite(&s, &mut w, &mut e);
             (0..3).map(|c| (g.rgb[c] * o.rgb[c]) as f64).sum::<f64>()
+                + w.iter().zip(&g_weights).map(|(a, b)| (a * b) as f64).sum::<f64>()
                 + (g.depth * o.depth + g.acc * o.acc) as f64
                 + (g_extra[0] * e[0] + g_extra[1] * e[1]) as f64
         };

@@ -37,6 +37,8 @@ pub struct RenderContext<'a> {
     pub contraction: &'a Contraction,
     /// Empty-space skipping, if enabled.
     pub occupancy: Option<&'a OccupancyGrid>,
+    /// No samples closer than this to the ray origin.
+    pub near: f32,
 }
 
 /// Samples that survived skipping, with the field's values at them.
@@ -130,7 +132,7 @@ fn march_parallel(ctx: RenderContext, rays: &RayBatch, options: MarchOptions, rn
         .map(|c| {
             let (start, end) = (c * MARCH_CHUNK, ((c + 1) * MARCH_CHUNK).min(rays.len()));
             let mut local = rand_chacha::ChaCha8Rng::seed_from_u64(seeds[c]);
-            sampler::march(ctx.extent, ctx.contraction, ctx.occupancy, &rays.slice(start, end), options, &mut local)
+            sampler::march(ctx.extent, ctx.contraction, ctx.occupancy, ctx.near, &rays.slice(start, end), options, &mut local)
         })
         .collect();
     concat(parts)

@@ -200,6 +200,7 @@ pub fn march(
     extent: &SceneExtent,
     contraction: &Contraction,
     occupancy: Option<&OccupancyGrid>,
+    near: f32,
     rays: &RayBatch,
     options: MarchOptions,
     rng: &mut impl Rng,
@@ -225,7 +226,7 @@ pub fn march(
                 let t = t_prev + xi * (t_next - t_prev);
                 let delta = t_next - t_prev;
                 t_prev = t_next;
-                if delta <= 0.0 {
+                if delta <= 0.0 || t < near {
                     continue;
                 }
                 let p = axpy(o, t, d);
@@ -308,7 +309,7 @@ mod tests {
         let cam = Camera::look_at([0.0, 0.0, 3.0], [0.0; 3], [0.0, 1.0, 0.0], 8, 8, 8.0);
         let rays = RayBatch::full_image(&cam);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-        let s = march(&extent, &Contraction::new(&extent), None, &rays, MarchOptions { steps: 64, stratified: true }, &mut rng);
+        let s = march(&extent, &Contraction::new(&extent), None, 0.0, &rays, MarchOptions { steps: 64, stratified: true }, &mut rng);
         assert_eq!(s.n_rays(), 64);
         for r in 0..s.n_rays() {
             let range = s.range(r);
@@ -326,7 +327,7 @@ mod tests {
         let extent = SceneExtent::ForwardFacing { near: 1.0, far: 10.0, focal: 10.0, width: 8.0, height: 8.0 };
         let rays = RayBatch { origins: vec![[0.0; 3]], directions: vec![[0.0, 0.0, -1.0]] };
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-        let s = march(&extent, &Contraction::new(&extent), None, &rays, MarchOptions { steps: 32, stratified: false }, &mut rng);
+        let s = march(&extent, &Contraction::new(&extent), None, 0.0, &rays, MarchOptions { steps: 32, stratified: false }, &mut rng);
         assert_eq!(s.len(), 32);
         let span: f32 = s.delta.iter().sum();
         assert!((span - 9.0).abs() < 1e-3, "{span}");

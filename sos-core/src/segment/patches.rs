@@ -140,6 +140,7 @@ mod tests {
             train: (0..n).collect(),
             test: vec![],
             extent: SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] },
+            near: 0.0,
             render_path: vec![],
         }
     }

@@ -67,13 +67,31 @@ pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<S
         r.composite(&[], 0);
 
         let scale = 2.0 / (n_rays * 3) as f32;
+        // DVGO's per-sample colour loss λ/N Σ_k w_k ‖c_k − C‖²: fog of the wrong colour is
+        // penalised directly, which carves empty space much faster than the ray loss alone.
+        let lambda = session.config.train.sample_color_weight / n_rays as f32;
+        let mut g_weight = vec![0.0f32; r.samples.len()];
+        let mut g_rgb_direct = vec![[0.0f32; 3]; if lambda > 0.0 { r.samples.len() } else { 0 }];
+        if lambda > 0.0 {
+            for (ray, t) in targets.iter().enumerate() {
+                for k in r.samples.range(ray) {
+                    let c = r.rgb[k];
+                    let d = [c[0] - t[0], c[1] - t[1], c[2] - t[2]];
+                    g_weight[k] = lambda * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+                    for j in 0..3 {
+                        g_rgb_direct[k][j] = lambda * 2.0 * r.weights[k] * d[j];
+                    }
+                }
+            }
+        }
         let mut mse = 0.0f64;
         let grads: Vec<RayGrad> = r
             .colors
             .iter()
             .zip(&targets)
-            .map(|(c, t)| {
-                let mut g = RayGrad::default();
+            .enumerate()
+            .map(|(ray, (c, t))| {
+                let mut g = RayGrad { weights: &g_weight[r.samples.range(ray)], ..Default::default() };
                 for k in 0..3 {
                     let e = c.rgb[k] - t[k];
                     mse += (e * e) as f64;
@@ -94,7 +112,12 @@ pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<S
         }
         bad_steps = 0;
         let timer = Instant::now();
-        let (g_sigma, g_rgb, _) = r.composite_backward(&[], 0, &grads);
+        let (g_sigma, mut g_rgb, _) = r.composite_backward(&[], 0, &grads);
+        for (g, d) in g_rgb.iter_mut().zip(&g_rgb_direct) {
+            for j in 0..3 {
+                g[j] += d[j];
+            }
+        }
         let t_cb = timer.elapsed().as_secs_f64();
         let tape = r.tape.take();
         session.field.backward(&r.samples.positions, &r.samples.directions, tape, &g_sigma, &g_rgb);

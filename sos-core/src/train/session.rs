@@ -153,6 +153,7 @@ impl Session {
             extent: &self.scene.extent,
             contraction: &self.contraction,
             occupancy: if self.step >= self.config.train.occupancy_warmup { self.occupancy.as_ref() } else { None },
+            near: self.scene.near,
         }
     }
 
