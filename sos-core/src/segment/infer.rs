@@ -147,7 +147,11 @@ fn pick(values: &[Option<f64>], better: impl Fn(f64, f64) -> bool) -> usize {
     let mut best: Option<(usize, f64)> = None;
     for (c, v) in values.iter().enumerate() {
         if let Some(v) = *v {
-            if best.map_or(true, |(_, b)| better(v, b)) {
+            let improves = match best {
+                None => true,
+                Some((_, b)) => better(v, b),
+            };
+            if improves {
                 best = Some((c, v));
             }
         }
