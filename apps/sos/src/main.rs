@@ -26,7 +26,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Fit the radiance field to the scene's photographs (stage 1), then evaluate.
+    /// Fit the radiance field (stage 1), evaluate, then train the segmentation head (stage 2,
+    /// when `segment.steps > 0`) and write masks and metrics.
     Train {
         /// Run configuration (TOML).
         config: PathBuf,
@@ -34,7 +35,19 @@ enum Command {
         #[arg(long)]
         resume: bool,
     },
-    /// Render held-out views and the novel camera path from a checkpoint.
+    /// Train the segmentation head (stage 2) from a stage-1 checkpoint, then write masks and metrics.
+    Segment {
+        /// Run configuration (TOML).
+        config: PathBuf,
+        /// Stage-1 checkpoint (default: the run's own); the head is saved to the run's checkpoint.
+        #[arg(long)]
+        checkpoint: Option<PathBuf>,
+        /// Skip training: infer masks with the head already saved in the checkpoint.
+        #[arg(long)]
+        masks_only: bool,
+    },
+    /// Render held-out views and the novel camera path from a checkpoint (with masks when it
+    /// holds a segmentation head).
     Render {
         /// Run configuration (TOML).
         config: PathBuf,
@@ -70,6 +83,9 @@ fn main() -> ExitCode {
     let progress = !cli.quiet && std::io::stderr().is_terminal();
     let result = match cli.command {
         Command::Train { config, resume } => commands::train::run(&config, resume, progress),
+        Command::Segment { config, checkpoint, masks_only } => {
+            commands::segment::run(&config, checkpoint.as_deref(), masks_only, progress)
+        }
         Command::Render { config, checkpoint } => commands::render::run(&config, checkpoint.as_deref()),
         Command::Eval { config, checkpoint } => commands::eval::run(&config, checkpoint.as_deref()),
         Command::List => commands::list::run(),

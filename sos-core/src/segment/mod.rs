@@ -2,7 +2,10 @@
 //! with the collaborative contrastive loss, and mask inference with k-means.
 
 pub mod defaults;
+pub mod evaluate;
 pub mod head;
+pub mod infer;
 pub mod patches;
+pub mod store;
 pub mod teacher;
 pub mod train;

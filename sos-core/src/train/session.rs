@@ -101,8 +101,24 @@ impl Session {
         checkpoint::save(&self.checkpoint_path(), &meta, &[("field", &state)])
     }
 
+    /// Writes the checkpoint atomically with `extra` named sections after the field (e.g. the
+    /// stage-2 `head`).
+    pub fn save_checkpoint_with(&self, extra: &[(&str, &[u8])]) -> Result<(), RunError> {
+        let meta = CheckpointMeta { step: self.step, field_kind: self.field_kind.clone(), config: self.config.to_toml() };
+        let state = self.field.save_state();
+        let mut sections: Vec<(&str, &[u8])> = vec![("field", &state)];
+        sections.extend(extra.iter().copied().filter(|(name, _)| *name != "field"));
+        checkpoint::save(&self.checkpoint_path(), &meta, &sections)
+    }
+
     /// Restores the field from `path` (the run's own checkpoint when `None`).
     pub fn load_checkpoint(&mut self, path: Option<&Path>) -> Result<(), RunError> {
+        self.load_checkpoint_sections(path).map(|_| ())
+    }
+
+    /// Restores the field like [`Session::load_checkpoint`] and returns the checkpoint with
+    /// its other sections (e.g. the stage-2 `head`) and the path it was read from.
+    pub fn load_checkpoint_sections(&mut self, path: Option<&Path>) -> Result<(checkpoint::Checkpoint, PathBuf), RunError> {
         let path = path.map(Path::to_path_buf).unwrap_or_else(|| self.checkpoint_path());
         let ckpt = checkpoint::load(&path)?;
         let fail = |message: String| RunError::Checkpoint { path: path.clone(), message };
@@ -116,7 +132,7 @@ impl Session {
         self.field.load_state(state).map_err(fail)?;
         self.step = ckpt.meta.step;
         self.refresh_occupancy(0.0);
-        Ok(())
+        Ok((ckpt, path))
     }
 
     /// Re-probes the occupancy grid (`decay = 0` rebuilds it from scratch).

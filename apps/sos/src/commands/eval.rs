@@ -1,21 +1,44 @@
-//! `sos eval`: metrics of a trained run on its held-out views.
+//! `sos eval`: metrics of a trained run on its held-out views (segmentation metrics too when
+//! the checkpoint holds a segmentation head).
 
 use std::path::Path;
 
+use sos_core::segment::infer::saliency_extractor;
+use sos_core::segment::store::load_with_head;
 use sos_core::train::evaluate::evaluate_views;
 use sos_core::train::Session;
 
+use super::stage2;
+
 pub fn run(config: &Path, checkpoint: Option<&Path>) -> anyhow::Result<()> {
     let mut session = Session::open(config)?;
-    session.load_checkpoint(checkpoint)?;
+    let (loaded, ckpt_path) = load_with_head(&mut session, checkpoint)?;
     let eval = evaluate_views(&session, false)?;
-    let report = serde_json::json!({ "scene": session.scene.name, "field": session.field_kind, "steps": session.step, "test": eval });
-    super::write_json(&session.run_dir.join("eval.json"), &report)?;
+    let mut report = serde_json::json!({
+        "scene": session.scene.name,
+        "field": session.field_kind,
+        "seeds": stage2::seeds(&session),
+        "steps": session.step,
+        "test": eval,
+    });
     println!("{:<24} {:>8}", "view", "PSNR");
     for v in &eval.views {
         println!("{:<24} {:>8.2}", v.view, v.psnr);
     }
     println!("{:<24} {:>8.2}", "PSNR of mean MSE", eval.psnr);
     println!("{:<24} {:>8.2}", "mean PSNR", eval.psnr_mean_per_view);
+    match loaded {
+        Some(loaded) => {
+            println!();
+            let extractor = saliency_extractor(&session)?;
+            let masks = stage2::masks(&session, &loaded.head, extractor.as_deref(), false)?;
+            report["stage2"] = stage2::report(&session, loaded.meta.steps, None, None, &masks);
+        }
+        None => eprintln!(
+            "note: {} has no segmentation head, so no segmentation metrics; run `sos segment` first",
+            ckpt_path.display()
+        ),
+    }
+    super::write_json(&session.run_dir.join("eval.json"), &report)?;
     Ok(())
 }

@@ -4,6 +4,8 @@ pub mod eval;
 pub mod init;
 pub mod list;
 pub mod render;
+pub mod segment;
+pub mod stage2;
 pub mod train;
 
 use std::path::Path;

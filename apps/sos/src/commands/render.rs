@@ -1,26 +1,60 @@
-//! `sos render`: held-out views and the novel camera path from a checkpoint.
+//! `sos render`: held-out views and the novel camera path from a checkpoint; with a
+//! segmentation head also their masks and overlays.
 
 use std::path::Path;
 
 use indicatif::ProgressBar;
+use sos_core::segment::evaluate::write_view_pngs;
+use sos_core::segment::infer::{saliency_extractor, MaskInference};
+use sos_core::segment::store::load_with_head;
 use sos_core::train::evaluate::evaluate_views;
 use sos_core::train::Session;
 
+use super::stage2;
+
 pub fn run(config: &Path, checkpoint: Option<&Path>) -> anyhow::Result<()> {
     let mut session = Session::open(config)?;
-    session.load_checkpoint(checkpoint)?;
-    let eval = evaluate_views(&session, true)?;
-    println!("rendered {} held-out views to {}", eval.views.len(), session.run_dir.join("test").display());
+    let (loaded, _) = load_with_head(&mut session, checkpoint)?;
+    let extractor = match &loaded {
+        Some(_) => saliency_extractor(&session)?,
+        None => None,
+    };
+    match &loaded {
+        Some(l) => {
+            stage2::masks(&session, &l.head, extractor.as_deref(), true)?;
+        }
+        None => {
+            let eval = evaluate_views(&session, true)?;
+            println!("rendered {} held-out views to {}", eval.views.len(), session.run_dir.join("test").display());
+        }
+    }
+    let inference = match &loaded {
+        Some(l) => Some(MaskInference::new(&session, &l.head, extractor.as_deref())?),
+        None => None,
+    };
     let path = session.scene.render_path.clone();
     let bar = ProgressBar::new(path.len() as u64);
     for (i, cam) in path.iter().enumerate() {
-        let (img, _) = session.render_view(cam);
-        img.save_png(&session.run_dir.join("path").join(format!("{i:04}.png")))?;
+        let name = format!("{i:04}");
+        match &inference {
+            // One render gives colour and logits.
+            Some(inf) => {
+                let mask = inf.segment(cam, &name)?;
+                write_view_pngs(&mask, &session.run_dir, ("path_masks", "path_overlays", Some("path")), &name)?;
+            }
+            None => {
+                let (img, _) = session.render_view(cam);
+                img.save_png(&session.run_dir.join("path").join(format!("{name}.png")))?;
+            }
+        }
         bar.inc(1);
     }
     bar.finish_and_clear();
     if !path.is_empty() {
         println!("rendered {} camera-path frames to {}", path.len(), session.run_dir.join("path").display());
+        if inference.is_some() {
+            println!("camera-path masks in {}", session.run_dir.join("path_masks").display());
+        }
     }
     Ok(())
 }

@@ -1,4 +1,5 @@
-//! `sos train`: stage 1, then evaluation of the held-out views.
+//! `sos train`: stage 1, evaluation of the held-out views, then (when `segment.steps > 0`)
+//! stage 2 and mask inference.
 
 use std::path::Path;
 use std::time::Instant;
@@ -7,6 +8,8 @@ use anyhow::Context;
 use sos_core::train::evaluate::evaluate_views;
 use sos_core::train::photometric::train_photometric;
 use sos_core::train::Session;
+
+use super::stage2;
 
 pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
     let started = Instant::now();
@@ -29,16 +32,34 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
     let stats = train_photometric(&mut session, progress)?;
     let train_seconds = started.elapsed().as_secs_f64();
     eprintln!("stage 1 done: {} steps, last batch PSNR {:.2} dB, {:.1} s", session.step, stats.psnr, train_seconds);
+    let eval_started = Instant::now();
     let eval = evaluate_views(&session, session.config.render.test_views)?;
-    let report = serde_json::json!({
+    let eval_seconds = eval_started.elapsed().as_secs_f64();
+    let metrics_path = session.run_dir.join("metrics.json");
+    let mut report = serde_json::json!({
         "scene": session.scene.name,
         "field": session.field_kind,
+        "seeds": stage2::seeds(&session),
         "steps": session.step,
+        "rays_per_step": session.config.train.rays_per_step,
         "train_seconds": train_seconds,
+        "timing": { "stage1_seconds": train_seconds, "stage1_eval_seconds": eval_seconds },
         "test": eval,
     });
-    super::write_json(&session.run_dir.join("metrics.json"), &report).context("writing metrics")?;
+    // Written now so stage-1 results survive a failing stage 2.
+    super::write_json(&metrics_path, &report).context("writing metrics")?;
     println!("held-out PSNR {:.2} dB (mean of per-view {:.2} dB) over {} views", eval.psnr, eval.psnr_mean_per_view, eval.views.len());
     println!("render speed {:.0} rays/s; outputs in {}", eval.render_rays_per_second, session.run_dir.display());
+
+    if session.config.segment.steps > 0 {
+        let s2 = stage2::train(&mut session, progress)?;
+        let masks = stage2::masks(&session, &s2.seg.head, Some(s2.seg.teacher.extractor()), true)?;
+        report["stage2"] = stage2::report(&session, s2.seg.step, Some(s2.seconds), Some(&s2.stats), &masks);
+        report["timing"]["stage2_seconds"] = s2.seconds.into();
+        report["timing"]["masks_seconds"] = masks.seconds.into();
+    }
+    report["timing"]["total_seconds"] = started.elapsed().as_secs_f64().into();
+    super::write_json(&metrics_path, &report).context("writing metrics")?;
+    println!("metrics in {}", metrics_path.display());
     Ok(())
 }

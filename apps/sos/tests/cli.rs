@@ -1,0 +1,219 @@
+//! End-to-end tests of the `sos` binary: plugin listing, `init` round trips, config errors
+//! (exit code 2 naming the file and key), and a tiny two-stage run with its outputs.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use sos_core::config::RunConfig;
+// Link the plugin registrations so configs with plugin kinds parse in this test binary.
+use sos_plugins as _;
+
+const SOS: &str = env!("CARGO_BIN_EXE_sos");
+
+/// A fresh temporary folder for one test.
+fn temp_dir(test: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("sos-cli-{test}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn sos(args: &[&str], cwd: &Path) -> Output {
+    Command::new(SOS).args(args).current_dir(cwd).output().expect("the sos binary runs")
+}
+
+fn text(bytes: &[u8]) -> String {
+    String::from_utf8_lossy(bytes).into_owned()
+}
+
+/// The tiny run of the end-to-end tests: 80x60, 10 views, 24³ grid, 60 + `seg_steps` steps.
+fn tiny_config(name: &str, train_steps: usize, seg_steps: usize) -> String {
+    format!(
+        r#"name = "{name}"
+seed = 3
+
+[scene]
+kind = "synthetic"
+width = 80
+height = 60
+views = 10
+hold_out_every = 5
+render_path_views = 2
+
+[field]
+kind = "voxel-grid"
+resolution = [24, 24, 24]
+initial_resolution = [16, 16, 16]
+
+[train]
+steps = {train_steps}
+rays_per_step = 1024
+checkpoint_every = 0
+
+[render]
+chunk = 4096
+
+[segment]
+steps = {seg_steps}
+patches = 4
+patch_size = 16
+stride = 2
+"#
+    )
+}
+
+#[test]
+fn list_names_the_default_plugins() {
+    let out = sos(&["list"], &std::env::temp_dir());
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let stdout = text(&out.stdout);
+    for kind in ["voxel-grid", "synthetic", "cell-stats", "cls-cosine", "appearance", "geometry"] {
+        assert!(stdout.contains(kind), "`sos list` does not name {kind}:\n{stdout}");
+    }
+}
+
+#[test]
+fn init_output_parses_back_and_round_trips() {
+    let dir = temp_dir("init");
+    let out = sos(&["init"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let written = text(&out.stdout);
+    let path = dir.join("init.toml");
+    let config = RunConfig::parse(&written, &path).expect("`sos init` output parses");
+    let again = RunConfig::parse(&config.to_toml(), &path).expect("re-serialised config parses");
+    assert_eq!(config.to_toml(), again.to_toml());
+    assert!(written.contains("[masks]") && written.contains("[segment]"), "{written}");
+
+    // Writing to a file works once and then refuses to overwrite.
+    let out = sos(&["init", "run.toml"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert!(RunConfig::load(&dir.join("run.toml")).is_ok());
+    let out = sos(&["init", "run.toml"], &dir);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(text(&out.stderr).contains("run.toml"), "{}", text(&out.stderr));
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
+fn config_errors_exit_2_naming_the_file_and_key() {
+    let dir = temp_dir("errors");
+    let good = tiny_config("errors", 1, 0);
+    let cases = [
+        ("unknown-kind.toml", good.replace("kind = \"voxel-grid\"", "kind = \"voxel-grud\""), "voxel-grud"),
+        ("unknown-key.toml", good.replace("resolution = [24", "resolutoin = [24"), "resolutoin"),
+        ("bad-value.toml", good.replace("rays_per_step = 1024", "rays_per_step = 0"), "train.rays_per_step"),
+    ];
+    for (file, config, key) in cases {
+        assert_ne!(config, good, "case {file} did not change the config");
+        std::fs::write(dir.join(file), config).unwrap();
+        for command in ["train", "segment", "eval"] {
+            let out = sos(&[command, file], &dir);
+            let stderr = text(&out.stderr);
+            assert_eq!(out.status.code(), Some(2), "sos {command} {file}: {stderr}");
+            assert!(stderr.contains(file) && stderr.contains(key), "sos {command} {file}: {stderr}");
+        }
+    }
+    // A missing checkpoint names the file and what to do.
+    std::fs::write(dir.join("good.toml"), &good).unwrap();
+    let out = sos(&["segment", "good.toml", "--checkpoint", "missing.bin"], &dir);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("missing.bin") && stderr.contains("sos train"), "{stderr}");
+    std::fs::remove_dir_all(dir).ok();
+}
+
+/// Numbers at these JSON pointers must be present and finite.
+fn assert_finite(json: &serde_json::Value, pointers: &[&str]) {
+    for p in pointers {
+        let v = json.pointer(p).unwrap_or_else(|| panic!("{p} missing in {json:#}"));
+        let x = v.as_f64().unwrap_or_else(|| panic!("{p} is not a number: {v}"));
+        assert!(x.is_finite(), "{p} = {x}");
+    }
+}
+
+#[test]
+fn tiny_two_stage_run_writes_masks_and_metrics() {
+    let dir = temp_dir("e2e");
+    std::fs::write(dir.join("tiny.toml"), tiny_config("tiny", 60, 10)).unwrap();
+    let started = std::time::Instant::now();
+    let out = sos(&["train", "tiny.toml", "--quiet"], &dir);
+    let stdout = text(&out.stdout);
+    assert!(out.status.success(), "{}\n{}", stdout, text(&out.stderr));
+    assert!(started.elapsed().as_secs() < 60, "tiny run took {:?}", started.elapsed());
+    for header in ["ARI", "IoU BG", "IoU FG", "mIoU", "PSNR", "SSIM", "mean"] {
+        assert!(stdout.contains(header), "table lacks {header}:\n{stdout}");
+    }
+
+    let run = dir.join("runs").join("tiny");
+    // hold_out_every = 5 of 10 views: two held-out views.
+    let masks: Vec<PathBuf> = std::fs::read_dir(run.join("masks")).unwrap().map(|e| e.unwrap().path()).collect();
+    assert_eq!(masks.len(), 2, "{masks:?}");
+    for m in &masks {
+        let name = m.file_name().unwrap();
+        assert!(run.join("overlays").join(name).is_file(), "no overlay for {name:?}");
+        assert!(run.join("test").join(name).is_file(), "no rendered view for {name:?}");
+        let bytes = std::fs::read(m).unwrap();
+        assert_eq!(&bytes[1..4], b"PNG");
+    }
+    let metrics: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("metrics.json")).unwrap()).unwrap();
+    assert_finite(
+        &metrics,
+        &[
+            "/test/psnr",
+            "/stage2/test/segmentation/mean_ari",
+            "/stage2/test/segmentation/miou",
+            "/stage2/test/image/mean_psnr",
+            "/stage2/test/image/mean_ssim",
+            "/timing/stage1_seconds",
+            "/timing/stage2_seconds",
+            "/timing/masks_seconds",
+            "/seeds/run",
+            "/steps",
+            "/stage2/steps",
+        ],
+    );
+    assert_eq!(metrics["stage2"]["steps"], 10);
+    assert_eq!(metrics["seeds"]["run"], 3);
+    assert_eq!(metrics["stage2"]["test"]["views"].as_array().unwrap().len(), 2);
+
+    // The head was checkpointed: inference alone reproduces the masks exactly.
+    let before: Vec<Vec<u8>> = masks.iter().map(|m| std::fs::read(m).unwrap()).collect();
+    let out = sos(&["segment", "tiny.toml", "--masks-only"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let after: Vec<Vec<u8>> = masks.iter().map(|m| std::fs::read(m).unwrap()).collect();
+    assert!(before == after, "masks from the saved head differ from those after training");
+
+    // `eval` reports segmentation metrics from the saved head.
+    let out = sos(&["eval", "tiny.toml"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let eval: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("eval.json")).unwrap()).unwrap();
+    assert_finite(&eval, &["/stage2/test/segmentation/mean_ari", "/stage2/test/segmentation/iou_bg"]);
+    assert_eq!(eval["stage2"]["test"]["segmentation"], metrics["stage2"]["test"]["segmentation"]);
+
+    // `render` writes masks of the camera path too.
+    let out = sos(&["render", "tiny.toml"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    for sub in ["path", "path_masks", "path_overlays"] {
+        assert!(run.join(sub).join("0001.png").is_file(), "no {sub}/0001.png");
+    }
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
+fn masks_only_without_a_head_says_what_to_do() {
+    let dir = temp_dir("nohead");
+    std::fs::write(dir.join("s1.toml"), tiny_config("nohead", 2, 0)).unwrap();
+    let out = sos(&["train", "s1.toml", "--quiet"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert!(!dir.join("runs/nohead/masks").exists(), "stage 2 ran with segment.steps = 0");
+    let out = sos(&["segment", "s1.toml", "--masks-only"], &dir);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("checkpoint.bin") && stderr.contains("no segmentation head"), "{stderr}");
+    // Stage 2 with steps = 0 is refused, naming the key.
+    let out = sos(&["segment", "s1.toml"], &dir);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("s1.toml") && stderr.contains("segment.steps"), "{stderr}");
+    std::fs::remove_dir_all(dir).ok();
+}

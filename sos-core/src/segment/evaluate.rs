@@ -1,0 +1,213 @@
+//! Evaluation of mask inference on held-out views: writes the mask, overlay and rendered
+//! colour of every view, and measures NV-ARI, IoU(BG), IoU(FG), mIoU against ground-truth
+//! masks (where a view has one) and PSNR/SSIM of the rendered colour.
+
+use std::path::Path;
+use std::time::Instant;
+
+use serde::Serialize;
+
+use crate::error::RunError;
+use crate::metrics::{adjusted_rand_index, binary_iou, ImageQualityReport, MetricError, SegmentationReport};
+use crate::plugin::dataset::DatasetError;
+use crate::scene::View;
+use crate::segment::infer::{MaskInference, ViewMask};
+use crate::train::session::Session;
+
+/// What a view without a ground-truth mask reports instead of segmentation metrics.
+pub const NO_GROUND_TRUTH: &str = "no ground truth";
+
+/// Metrics of one held-out view.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ViewRecord {
+    /// View name.
+    pub view: String,
+    /// ARI of the ground-truth mask against the k-means labels over all pixels.
+    pub ari: Option<f64>,
+    /// IoU of the background.
+    pub iou_bg: Option<f64>,
+    /// IoU of the foreground.
+    pub iou_fg: Option<f64>,
+    /// Mean of the defined IoUs.
+    pub miou: Option<f64>,
+    /// PSNR of the rendered colour, dB.
+    pub psnr: f64,
+    /// SSIM of the rendered colour.
+    pub ssim: f64,
+    /// Clusters k-means formed.
+    pub clusters: usize,
+    /// Fraction of pixels predicted foreground.
+    pub foreground_fraction: f64,
+    /// [`NO_GROUND_TRUTH`] when the view has no mask.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub note: Option<String>,
+}
+
+/// Mask-inference results over a set of held-out views.
+#[derive(Debug, Clone, Serialize)]
+pub struct MaskEval {
+    /// Per-view values, in scene order.
+    pub views: Vec<ViewRecord>,
+    /// Segmentation metrics over the views with a ground-truth mask.
+    pub segmentation: SegmentationReport,
+    /// PSNR/SSIM of the rendered colour over all views.
+    pub image: ImageQualityReport,
+    /// [`NO_GROUND_TRUTH`] when no view has a mask.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub note: Option<String>,
+    /// Wall-clock seconds of rendering, clustering and measuring.
+    pub seconds: f64,
+}
+
+/// Folders (under the run folder) the outputs of held-out views go to.
+pub const MASKS_DIR: &str = "masks";
+/// Overlays of held-out views.
+pub const OVERLAYS_DIR: &str = "overlays";
+/// Rendered colour of held-out views.
+pub const TEST_DIR: &str = "test";
+
+/// Writes `<root>/<masks>/<name>.png` (foreground 255), `<root>/<overlays>/<name>.png` and,
+/// when `images` is given, `<root>/<images>/<name>.png`.
+pub fn write_view_pngs(
+    mask: &ViewMask,
+    root: &Path,
+    dirs: (&str, &str, Option<&str>),
+    name: &str,
+) -> Result<(), RunError> {
+    let file = format!("{name}.png");
+    mask.mask_image().save_png(&root.join(dirs.0).join(&file))?;
+    mask.overlay().save_png(&root.join(dirs.1).join(&file))?;
+    if let Some(images) = dirs.2 {
+        mask.rgb.save_png(&root.join(images).join(&file))?;
+    }
+    Ok(())
+}
+
+/// Segments every held-out view of the session's scene, writes its PNGs into the run folder
+/// (when `write`), and measures it.
+pub fn evaluate_masks(session: &Session, inference: &MaskInference, write: bool) -> Result<MaskEval, RunError> {
+    let started = Instant::now();
+    let mut out = MaskEval {
+        views: Vec::new(),
+        segmentation: SegmentationReport::new(),
+        image: ImageQualityReport::new(),
+        note: None,
+        seconds: 0.0,
+    };
+    for &i in &session.scene.test {
+        let view = &session.scene.views[i];
+        let mask = inference.segment(&view.camera, &view.name)?;
+        if write {
+            write_view_pngs(&mask, &session.run_dir, (MASKS_DIR, OVERLAYS_DIR, Some(TEST_DIR)), &view.name)?;
+        }
+        out.views.push(measure_view(session, view, &mask, &mut out.segmentation, &mut out.image)?);
+    }
+    if out.views.iter().all(|v| v.note.is_some()) {
+        out.note = Some(NO_GROUND_TRUTH.into());
+    }
+    out.seconds = started.elapsed().as_secs_f64();
+    Ok(out)
+}
+
+/// Measures one view's mask and colour and adds them to the reports.
+pub fn measure_view(
+    session: &Session,
+    view: &View,
+    mask: &ViewMask,
+    segmentation: &mut SegmentationReport,
+    image: &mut ImageQualityReport,
+) -> Result<ViewRecord, RunError> {
+    let bad = |e: MetricError| {
+        RunError::Dataset(DatasetError::Invalid {
+            path: session.config_dir.clone(),
+            message: format!("view {}: {e}", view.name),
+        })
+    };
+    image.add_view(&view.name, &mask.rgb, &view.image).map_err(bad)?;
+    let quality = image.views().last().expect("a view was just added").clone();
+    let n = mask.foreground.len().max(1);
+    let mut record = ViewRecord {
+        view: view.name.clone(),
+        ari: None,
+        iou_bg: None,
+        iou_fg: None,
+        miou: None,
+        psnr: quality.psnr,
+        ssim: quality.ssim,
+        clusters: mask.clusters,
+        foreground_fraction: mask.foreground.iter().filter(|&&f| f).count() as f64 / n as f64,
+        note: Some(NO_GROUND_TRUTH.into()),
+    };
+    if let Some(gt) = &view.mask {
+        let gt = gt.resized_nearest(mask.rgb.width, mask.rgb.height);
+        let gt: Vec<bool> = gt.data.iter().map(|&v| v >= 0.5).collect();
+        // NV-ARI compares with the k-means labels themselves (all clusters), IoU with the mask.
+        let ari = adjusted_rand_index(&gt, &mask.labels).map_err(bad)?;
+        let iou = binary_iou(&gt, &mask.foreground).map_err(bad)?;
+        segmentation.push(&view.name, ari, iou);
+        record.ari = Some(ari);
+        record.iou_bg = iou.bg;
+        record.iou_fg = iou.fg;
+        record.miou = iou.miou();
+        record.note = None;
+    }
+    Ok(record)
+}
+
+impl MaskEval {
+    /// A plain-text table: view, ARI, IoU BG, IoU FG, mIoU, PSNR, SSIM, then a mean row
+    /// (segmentation means over the views with ground truth).
+    pub fn to_table(&self) -> String {
+        let num = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.4}"));
+        let mut rows: Vec<[String; 7]> = self
+            .views
+            .iter()
+            .map(|v| {
+                [
+                    v.view.clone(),
+                    v.ari.map_or_else(|| NO_GROUND_TRUTH.to_string(), |a| format!("{a:.4}")),
+                    num(v.iou_bg),
+                    num(v.iou_fg),
+                    num(v.miou),
+                    format!("{:.2}", v.psnr),
+                    format!("{:.4}", v.ssim),
+                ]
+            })
+            .collect();
+        let iou = self.segmentation.iou();
+        rows.push([
+            "mean".into(),
+            self.segmentation.mean_ari().map_or_else(|| NO_GROUND_TRUTH.to_string(), |a| format!("{a:.4}")),
+            num(iou.iou_bg),
+            num(iou.iou_fg),
+            num(iou.miou),
+            self.image.mean_psnr().map_or_else(|| "-".into(), |p| format!("{p:.2}")),
+            num(self.image.mean_ssim()),
+        ]);
+        let header = ["view", "ARI", "IoU BG", "IoU FG", "mIoU", "PSNR", "SSIM"];
+        let mut widths = header.map(str::len);
+        for row in &rows {
+            for (w, cell) in widths.iter_mut().zip(row) {
+                *w = (*w).max(cell.len());
+            }
+        }
+        let line = |cells: &[&str]| {
+            let mut s = String::new();
+            for (i, (cell, w)) in cells.iter().zip(&widths).enumerate() {
+                if i == 0 {
+                    s.push_str(&format!("{cell:<w$}"));
+                } else {
+                    s.push_str(&format!("  {cell:>w$}"));
+                }
+            }
+            s.push('\n');
+            s
+        };
+        let mut out = line(&header);
+        out.push_str(&line(&widths.map(|w| "-".repeat(w)).iter().map(String::as_str).collect::<Vec<_>>()));
+        for row in &rows {
+            out.push_str(&line(&row.iter().map(String::as_str).collect::<Vec<_>>()));
+        }
+        out
+    }
+}

@@ -1,0 +1,474 @@
+//! Mask inference: render a view's segmentation logits with the trained head, cluster them
+//! with k-means, and name the foreground cluster.
+//!
+//! Foreground rules (`masks.foreground`):
+//! - `saliency`: the cluster with the highest mean teacher saliency. The stage-2 extractor runs
+//!   on the whole rendered view; its coarse saliency grid is upsampled (nearest) to the image.
+//! - `focus`: the cluster whose rendered 3D points (`origin + direction · depth`, empty rays
+//!   excluded) lie nearest, on average, to a focus point. For object-centric rigs it is
+//!   [`Scene::focus_point`], where the training cameras' axes meet. When every training axis is
+//!   within [`PARALLEL_AXES_DEG`] of their mean (forward-facing rigs), the axes do not meet, so
+//!   the focus is instead the point on the mean camera axis (through the mean camera centre)
+//!   at the median rendered depth of the view's central window (sides [`CENTRAL_FRACTION`] of
+//!   the image's): whatever the view is centred on.
+//!
+//! With more than two clusters the foreground is the single chosen cluster.
+
+use crate::camera::{axpy, dot, normalize, sub, Camera, Vec3};
+use crate::config::{ForegroundRule, MaskConfig};
+use crate::error::{ConfigError, RunError};
+use crate::image::{GrayImage, RgbImage};
+use crate::kmeans::{kmeans, KMeansConfig, KMeansResult};
+use crate::plugin::FeatureExtractor;
+use crate::render::composite::EMPTY_RAY_DEPTH;
+use crate::render::rays::RayBatch;
+use crate::render::renderer::render_inference;
+use crate::scene::Scene;
+use crate::segment::head::SegHead;
+use crate::train::session::Session;
+
+/// Largest angle (degrees) between a training camera's axis and the mean axis for which the
+/// rig counts as forward-facing in the `focus` rule.
+pub const PARALLEL_AXES_DEG: f32 = 15.0;
+
+/// Side of the central window, as a fraction of the image's sides, whose median depth places
+/// the focus point of forward-facing views.
+pub const CENTRAL_FRACTION: f32 = 0.2;
+
+/// Tint of foreground pixels in overlays and how strongly it is mixed in.
+const OVERLAY_TINT: [f32; 3] = [1.0, 0.1, 0.1];
+const OVERLAY_ALPHA: f32 = 0.5;
+
+/// What one view renders to: colour, depth and composited logits per pixel.
+#[derive(Debug, Clone)]
+pub struct RenderedLogits {
+    /// Rendered colour.
+    pub rgb: RgbImage,
+    /// Expected distance per pixel (`EMPTY_RAY_DEPTH` for empty rays), row-major.
+    pub depth: Vec<f32>,
+    /// Composited raw logits, `[H·W, channels]` row-major.
+    pub logits: Vec<f32>,
+    /// Logit channels.
+    pub channels: usize,
+    /// Rendered 3D point of each pixel, `None` for empty rays.
+    pub points: Vec<Option<Vec3>>,
+}
+
+/// Renders the colour, depth and segmentation logits of a whole view.
+pub fn render_logits(session: &Session, head: &SegHead, camera: &Camera) -> RenderedLogits {
+    let field = session.field.as_ref();
+    let dim = field.seg_input_dim();
+    let d = head.outputs();
+    let rays = RayBatch::full_image(camera);
+    let extra_fn = |samples: &crate::render::sampler::Samples| {
+        let n = samples.len();
+        let mut input = vec![0.0; n * dim];
+        field.seg_input(&samples.positions, &mut input);
+        head.infer(&input, n)
+    };
+    let (colors, logits) = render_inference(
+        field,
+        session.render_context(),
+        &rays,
+        session.render_options(false),
+        session.config.render.chunk,
+        d,
+        &extra_fn,
+    );
+    let mut rgb = RgbImage::new(camera.width as usize, camera.height as usize);
+    let mut depth = Vec::with_capacity(colors.len());
+    let mut points = Vec::with_capacity(colors.len());
+    for (i, c) in colors.iter().enumerate() {
+        rgb.data[i * 3..i * 3 + 3].copy_from_slice(&c.rgb);
+        depth.push(c.depth);
+        points.push(is_hit(c.depth).then(|| axpy(rays.origins[i], c.depth, rays.directions[i])));
+    }
+    RenderedLogits { rgb, depth, logits, channels: d, points }
+}
+
+/// Whether a rendered depth is a real hit rather than the empty-ray sentinel.
+fn is_hit(depth: f32) -> bool {
+    depth.is_finite() && depth < EMPTY_RAY_DEPTH * 0.5
+}
+
+/// Per-row softmax of `[n, d]` values (numerically stable).
+pub fn softmax_rows(values: &[f32], d: usize) -> Vec<f32> {
+    let mut out = values.to_vec();
+    for row in out.chunks_exact_mut(d) {
+        let m = row.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        let mut sum = 0.0;
+        for v in row.iter_mut() {
+            *v = (*v - m).exp();
+            sum += *v;
+        }
+        for v in row.iter_mut() {
+            *v /= sum;
+        }
+    }
+    out
+}
+
+/// k-means of per-pixel logits (`[n, d]`), after a softmax when `masks.softmax`; the result
+/// may have fewer clusters than asked when the logits take fewer distinct values.
+pub fn cluster_logits(
+    logits: &[f32],
+    d: usize,
+    masks: &MaskConfig,
+    seed: u64,
+) -> Result<KMeansResult, crate::kmeans::KMeansError> {
+    let config = KMeansConfig { k: masks.clusters, n_init: masks.restarts, seed, ..KMeansConfig::default() };
+    if masks.softmax {
+        kmeans(&softmax_rows(logits, d), d, &config)
+    } else {
+        kmeans(logits, d, &config)
+    }
+}
+
+/// Nearest-neighbour upsampling of a `[gh, gw]` grid to `[h, w]`.
+pub fn upsample_nearest(grid: &[f32], gw: usize, gh: usize, w: usize, h: usize) -> Vec<f32> {
+    GrayImage { width: gw, height: gh, data: grid.to_vec() }.resized_nearest(w, h).data
+}
+
+/// Mean of `value` over each cluster's pixels; `None` for empty clusters.
+fn cluster_means(labels: &[u32], k: usize, value: impl Fn(usize) -> Option<f64>) -> Vec<Option<f64>> {
+    let mut sum = vec![0.0f64; k];
+    let mut count = vec![0usize; k];
+    for (i, &l) in labels.iter().enumerate() {
+        if let Some(v) = value(i) {
+            sum[l as usize] += v;
+            count[l as usize] += 1;
+        }
+    }
+    sum.iter().zip(&count).map(|(&s, &c)| (c > 0).then(|| s / c as f64)).collect()
+}
+
+/// Index of the best defined value by `better`, ties to the lower index; 0 if none is defined.
+fn pick(values: &[Option<f64>], better: impl Fn(f64, f64) -> bool) -> usize {
+    let mut best: Option<(usize, f64)> = None;
+    for (c, v) in values.iter().enumerate() {
+        if let Some(v) = *v {
+            let improves = match best {
+                None => true,
+                Some((_, b)) => better(v, b),
+            };
+            if improves {
+                best = Some((c, v));
+            }
+        }
+    }
+    best.map_or(0, |(c, _)| c)
+}
+
+/// The cluster (of `k`) with the highest mean saliency; `saliency` is per pixel.
+pub fn foreground_by_saliency(labels: &[u32], k: usize, saliency: &[f32]) -> usize {
+    pick(&cluster_means(labels, k, |i| Some(saliency[i] as f64)), |a, b| a > b)
+}
+
+/// The cluster (of `k`) whose points lie nearest `focus` on average; pixels without a point
+/// (empty rays) do not count, and a cluster of only empty rays is never chosen unless all are.
+pub fn foreground_by_focus(labels: &[u32], k: usize, points: &[Option<Vec3>], focus: Vec3) -> usize {
+    let dist = |i: usize| points[i].map(|p| dot(sub(p, focus), sub(p, focus)).sqrt() as f64);
+    pick(&cluster_means(labels, k, dist), |a, b| a < b)
+}
+
+/// Where the `focus` rule measures distances from.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum FocusTarget {
+    /// A fixed point where the training cameras' axes meet.
+    Point(Vec3),
+    /// Forward-facing rig: a point on this axis at each view's central median depth.
+    Axis {
+        /// Mean training camera centre.
+        origin: Vec3,
+        /// Mean training viewing direction (unit).
+        direction: Vec3,
+    },
+}
+
+impl FocusTarget {
+    /// Chooses the target for a scene (see the module documentation).
+    pub fn of_scene(scene: &Scene) -> FocusTarget {
+        let n = scene.train.len().max(1) as f32;
+        let mut origin = [0.0; 3];
+        let mut axis = [0.0; 3];
+        for &i in &scene.train {
+            let cam = &scene.views[i].camera;
+            let (o, f) = (cam.origin(), cam.forward());
+            for k in 0..3 {
+                origin[k] += o[k] / n;
+                axis[k] += f[k];
+            }
+        }
+        let direction = normalize(axis);
+        let cos_max = PARALLEL_AXES_DEG.to_radians().cos();
+        let parallel = !scene.train.is_empty()
+            && direction.iter().all(|v| v.is_finite())
+            && scene.train.iter().all(|&i| dot(scene.views[i].camera.forward(), direction) >= cos_max);
+        if parallel {
+            FocusTarget::Axis { origin, direction }
+        } else {
+            FocusTarget::Point(scene.focus_point())
+        }
+    }
+
+    /// The focus point for one rendered view (`depth` row-major `width x height`).
+    pub fn point_for(&self, depth: &[f32], width: usize, height: usize) -> Option<Vec3> {
+        match *self {
+            FocusTarget::Point(p) => Some(p),
+            FocusTarget::Axis { origin, direction } => {
+                let (cw, ch) = (window(width), window(height));
+                let (c0, r0) = ((width - cw) / 2, (height - ch) / 2);
+                let mut central: Vec<f32> = (r0..r0 + ch)
+                    .flat_map(|r| (c0..c0 + cw).map(move |c| depth[r * width + c]))
+                    .filter(|&d| is_hit(d))
+                    .collect();
+                if central.is_empty() {
+                    return None;
+                }
+                let mid = central.len() / 2;
+                let (_, median, _) = central.select_nth_unstable_by(mid, f32::total_cmp);
+                Some(axpy(origin, *median, direction))
+            }
+        }
+    }
+}
+
+/// Pixels of the central window along a side of `n` pixels (at least one).
+fn window(n: usize) -> usize {
+    ((n as f32 * CENTRAL_FRACTION).round() as usize).clamp(1, n.max(1))
+}
+
+/// The segmentation of one view.
+#[derive(Debug, Clone)]
+pub struct ViewMask {
+    /// k-means cluster of each pixel, row-major.
+    pub labels: Vec<u32>,
+    /// Clusters formed (at most `masks.clusters`).
+    pub clusters: usize,
+    /// The cluster named foreground.
+    pub foreground_cluster: usize,
+    /// Foreground flag of each pixel.
+    pub foreground: Vec<bool>,
+    /// The rendered colour.
+    pub rgb: RgbImage,
+}
+
+impl ViewMask {
+    /// Builds a mask from cluster labels and the chosen cluster.
+    pub fn new(labels: Vec<u32>, clusters: usize, foreground_cluster: usize, rgb: RgbImage) -> ViewMask {
+        let foreground = labels.iter().map(|&l| l as usize == foreground_cluster).collect();
+        ViewMask { labels, clusters, foreground_cluster, foreground, rgb }
+    }
+
+    /// The binary mask, foreground 1 (written as 255).
+    pub fn mask_image(&self) -> GrayImage {
+        GrayImage {
+            width: self.rgb.width,
+            height: self.rgb.height,
+            data: self.foreground.iter().map(|&f| if f { 1.0 } else { 0.0 }).collect(),
+        }
+    }
+
+    /// The rendered colour, tinted where foreground.
+    pub fn overlay(&self) -> RgbImage {
+        let mut out = self.rgb.clone();
+        for (px, &fg) in out.data.chunks_exact_mut(3).zip(&self.foreground) {
+            if fg {
+                for k in 0..3 {
+                    px[k] = (1.0 - OVERLAY_ALPHA) * px[k] + OVERLAY_ALPHA * OVERLAY_TINT[k];
+                }
+            }
+        }
+        out
+    }
+}
+
+/// Mask inference for a session with a trained head.
+pub struct MaskInference<'a> {
+    session: &'a Session,
+    head: &'a SegHead,
+    extractor: Option<&'a dyn FeatureExtractor>,
+    focus: FocusTarget,
+}
+
+impl<'a> MaskInference<'a> {
+    /// Prepares inference; `extractor` is only consulted by the `saliency` rule (and must
+    /// then be given).
+    pub fn new(
+        session: &'a Session,
+        head: &'a SegHead,
+        extractor: Option<&'a dyn FeatureExtractor>,
+    ) -> Result<Self, RunError> {
+        if head.mlp.in_dim() != session.field.seg_input_dim() {
+            return Err(RunError::Checkpoint {
+                path: session.checkpoint_path(),
+                message: format!(
+                    "the segmentation head takes {} inputs but the field gives {}; rerun `sos segment`",
+                    head.mlp.in_dim(),
+                    session.field.seg_input_dim()
+                ),
+            });
+        }
+        if session.config.masks.foreground == ForegroundRule::Saliency && extractor.is_none() {
+            return Err(no_saliency(session, "no feature extractor is available"));
+        }
+        Ok(MaskInference { session, head, extractor, focus: FocusTarget::of_scene(&session.scene) })
+    }
+
+    /// The focus target of the `focus` rule.
+    pub fn focus_target(&self) -> FocusTarget {
+        self.focus
+    }
+
+    /// Renders, clusters and picks the foreground of the view seen by `camera`; `name` is
+    /// used in messages.
+    pub fn segment(&self, camera: &Camera, name: &str) -> Result<ViewMask, RunError> {
+        let r = render_logits(self.session, self.head, camera);
+        let masks = &self.session.config.masks;
+        let km = cluster_logits(&r.logits, r.channels, masks, self.session.config.seed).map_err(|e| {
+            RunError::Diverged(format!(
+                "view {name}: cannot cluster the rendered logits ({e}); retrain stage 2 with `sos segment`"
+            ))
+        })?;
+        let (w, h) = (r.rgb.width, r.rgb.height);
+        let fg = match masks.foreground {
+            ForegroundRule::Saliency => {
+                let saliency = self.saliency(&r.rgb)?;
+                foreground_by_saliency(&km.labels, km.k, &saliency)
+            }
+            ForegroundRule::Focus => match self.focus.point_for(&r.depth, w, h) {
+                Some(p) => foreground_by_focus(&km.labels, km.k, &r.points, p),
+                // Nothing rendered in the centre: fall back to where the cameras look.
+                None => foreground_by_focus(&km.labels, km.k, &r.points, self.session.scene.focus_point()),
+            },
+        };
+        Ok(ViewMask::new(km.labels, km.k, fg, r.rgb))
+    }
+
+    /// The extractor's saliency of a rendered image, upsampled to its pixels.
+    fn saliency(&self, rgb: &RgbImage) -> Result<Vec<f32>, RunError> {
+        let extractor = self.extractor.ok_or_else(|| no_saliency(self.session, "no feature extractor is available"))?;
+        let features = extractor.extract(std::slice::from_ref(rgb));
+        let f = features.first().ok_or_else(|| no_saliency(self.session, "the extractor returned no features"))?;
+        let grid = f.saliency.as_ref().ok_or_else(|| {
+            no_saliency(self.session, &format!("the extractor `{}` gives no saliency map", extractor.identity()))
+        })?;
+        if grid.len() != f.width * f.height || grid.is_empty() {
+            return Err(no_saliency(self.session, "the extractor's saliency map does not match its grid"));
+        }
+        Ok(upsample_nearest(grid, f.width, f.height, rgb.width, rgb.height))
+    }
+}
+
+/// Builds the stage-2 extractor from the config (the `[extractor]` table or the default
+/// `cell-stats`), for the `saliency` rule outside stage 2; `None` under the `focus` rule,
+/// which needs none.
+pub fn saliency_extractor(session: &Session) -> Result<Option<Box<dyn FeatureExtractor>>, RunError> {
+    if session.config.masks.foreground != ForegroundRule::Saliency {
+        return Ok(None);
+    }
+    let config = match &session.config.extractor {
+        Some(e) => e.build()?,
+        None => crate::segment::defaults::extractor()
+            .ok_or_else(|| {
+                no_saliency(
+                    session,
+                    &format!("no `[extractor]` is configured and `{}` is not linked", crate::segment::defaults::DEFAULT_EXTRACTOR),
+                )
+            })?
+            .build()?,
+    };
+    Ok(Some(config))
+}
+
+fn no_saliency(session: &Session, why: &str) -> RunError {
+    RunError::Config(ConfigError::Invalid {
+        path: session.config_dir.clone(),
+        key: "masks.foreground".into(),
+        reason: format!(
+            "`saliency` needs a teacher saliency map but {why}; set `foreground = \"focus\"` or choose an \
+             extractor with saliency"
+        ),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn saliency_picks_the_more_salient_cluster() {
+        // Two clusters: left half label 1, right half label 0; saliency high on the left.
+        let (w, h) = (8, 4);
+        let labels: Vec<u32> = (0..w * h).map(|i| u32::from(i % w < w / 2)).collect();
+        let grid = [0.9, 0.1, 0.8, 0.2]; // 2x2 grid, coarse
+        let saliency = upsample_nearest(&grid, 2, 2, w, h);
+        assert_eq!(saliency.len(), w * h);
+        assert_eq!(foreground_by_saliency(&labels, 2, &saliency), 1);
+        // Swapping the saliency swaps the choice.
+        let flipped: Vec<f32> = saliency.iter().map(|s| 1.0 - s).collect();
+        assert_eq!(foreground_by_saliency(&labels, 2, &flipped), 0);
+    }
+
+    #[test]
+    fn focus_ignores_empty_rays_and_picks_the_nearer_cluster() {
+        let labels = vec![0, 0, 1, 1, 1];
+        let points = vec![Some([5.0, 0.0, 0.0]), None, Some([0.1, 0.0, 0.0]), Some([0.0, 0.2, 0.0]), None];
+        assert_eq!(foreground_by_focus(&labels, 2, &points, [0.0; 3]), 1);
+        // A cluster of only empty rays is background.
+        let points = vec![None, None, Some([9.0, 0.0, 0.0]), Some([9.0, 0.0, 0.0]), None];
+        assert_eq!(foreground_by_focus(&labels, 2, &points, [0.0; 3]), 1);
+    }
+
+    #[test]
+    fn kmeans_masks_recover_a_square_from_noisy_logits() {
+        // 20x20 logits: a square of high "object" logit on a background, with small noise.
+        let (w, h) = (20, 20);
+        let inside = |i: usize| (5..12).contains(&(i % w)) && (6..14).contains(&(i / w));
+        let mut logits = Vec::new();
+        for i in 0..w * h {
+            let noise = ((i * 7919) % 97) as f32 / 97.0 * 0.2 - 0.1;
+            let (a, b) = if inside(i) { (-1.0, 2.0) } else { (1.5, -0.5) };
+            logits.extend([a + noise, b - noise]);
+        }
+        // Saliency is higher on the square.
+        let saliency: Vec<f32> = (0..w * h).map(|i| if inside(i) { 0.7 } else { 0.2 }).collect();
+        for softmax in [false, true] {
+            let masks = MaskConfig { clusters: 2, restarts: 3, softmax, foreground: ForegroundRule::Saliency };
+            let km = cluster_logits(&logits, 2, &masks, 0).unwrap();
+            assert_eq!(km.k, 2);
+            let fg = foreground_by_saliency(&km.labels, km.k, &saliency);
+            let mask = ViewMask::new(km.labels.clone(), km.k, fg, RgbImage::new(w, h));
+            for (i, &f) in mask.foreground.iter().enumerate() {
+                assert_eq!(f, inside(i), "pixel {i} (softmax {softmax})");
+            }
+            let img = mask.mask_image();
+            assert_eq!(img.data.iter().filter(|&&v| v == 1.0).count(), 7 * 8);
+            let overlay = mask.overlay();
+            assert!(overlay.pixel(6, 7)[0] > 0.4 && overlay.pixel(0, 0) == [0.0; 3]);
+        }
+    }
+
+    #[test]
+    fn softmax_rows_sum_to_one() {
+        let s = softmax_rows(&[1000.0, 0.0, -1.0, 1.0], 2);
+        assert!((s[0] - 1.0).abs() < 1e-6 && s[1] < 1e-6);
+        assert!((s[2] + s[3] - 1.0).abs() < 1e-6 && s[3] > s[2]);
+    }
+
+    #[test]
+    fn forward_facing_focus_uses_the_central_median_depth() {
+        let target = FocusTarget::Axis { origin: [0.0, 0.0, 0.0], direction: [0.0, 0.0, -1.0] };
+        // 10x10 depths: 2 everywhere, 4 in the central 2x2 window, empty in one central pixel.
+        let mut depth = vec![2.0; 100];
+        for r in 4..6 {
+            for c in 4..6 {
+                depth[r * 10 + c] = 4.0;
+            }
+        }
+        depth[44] = EMPTY_RAY_DEPTH;
+        assert_eq!(target.point_for(&depth, 10, 10), Some([0.0, 0.0, -4.0]));
+        let empty = vec![EMPTY_RAY_DEPTH; 100];
+        assert_eq!(target.point_for(&empty, 10, 10), None);
+    }
+}
