@@ -216,12 +216,12 @@ impl Default for TrainConfig {
             samples_per_ray: 384,
             early_stop: 1e-4,
             sample_color_weight: 0.1,
-            weight_threshold: 0.0,
+            weight_threshold: 1e-4,
             occupancy: true,
             occupancy_resolution: 128,
-            occupancy_every: 16,
+            occupancy_every: 8,
             occupancy_alpha: 1e-3,
-            occupancy_warmup: 256,
+            occupancy_warmup: 64,
             checkpoint_every: 1000,
         }
     }

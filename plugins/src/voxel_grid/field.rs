@@ -290,10 +290,7 @@ impl RadianceField for VoxelGridField {
         let ch = self.grid.channels;
         let mut lr = vec![self.config.lr_color * lr_factor; ch];
         lr[0] = self.config.lr_density * lr_factor;
-        self.adam.step(&mut self.grid.data, &mut self.grads, &self.touched, ch, &lr);
-        for &v in &self.touched {
-            self.touched_flag[v as usize] = false;
-        }
+        self.adam.step(&mut self.grid.data, &mut self.grads, &mut self.touched_flag, ch, &lr);
         self.touched.clear();
     }
 

@@ -50,14 +50,16 @@ impl Default for VoxelGridConfig {
     fn default() -> Self {
         VoxelGridConfig {
             resolution: [160, 160, 160],
-            initial_resolution: [64, 64, 64],
-            upsample_at: vec![0.1, 0.2, 0.35],
+            initial_resolution: [32, 32, 32],
+            upsample_at: vec![0.15, 0.3, 0.5],
             sh_degree: 1,
-            alpha_init: 1e-4,
+            alpha_init: 1e-3,
             lr_density: 0.1,
             lr_color: 0.05,
-            tv_density: 1e-5,
-            tv_color: 1e-6,
+            // Off by default: at initialisation the softplus slope makes photometric density
+            // gradients tiny, and any total variation would dominate Adam's normalised steps.
+            tv_density: 0.0,
+            tv_color: 0.0,
             seg_frequencies: 6,
         }
     }
