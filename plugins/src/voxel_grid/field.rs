@@ -397,7 +397,13 @@ mod tests {
 
     fn field() -> VoxelGridField {
         let extent = SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] };
-        let cfg = VoxelGridConfig { initial_resolution: [6, 5, 7], resolution: [12, 10, 14], sh_degree: 2, ..Default::default() };
+        let cfg = VoxelGridConfig {
+            initial_resolution: [6, 5, 7],
+            resolution: [12, 10, 14],
+            upsample_at: vec![0.1, 0.5],
+            sh_degree: 2,
+            ..Default::default()
+        };
         let mut f = VoxelGridField::new(cfg, Contraction::new(&extent), &extent);
         for (i, v) in f.grid.data.iter_mut().enumerate() {
             *v = ((i * 7919) % 1000) as f32 / 500.0 - 1.0;

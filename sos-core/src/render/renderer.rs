@@ -160,30 +160,41 @@ fn concat(parts: Vec<Samples>) -> Samples {
 }
 
 impl Rendered {
+    /// The samples of ray `r` as the compositing kernel sees them.
+    fn ray_samples<'a>(&'a self, r: usize, extra: &'a [f32], d_extra: usize) -> RaySamples<'a> {
+        let range = self.samples.range(r);
+        RaySamples {
+            sigma: &self.density[range.clone()],
+            delta: &self.samples.delta[range.clone()],
+            t: &self.samples.t[range.clone()],
+            rgb: &self.rgb[range.clone()],
+            extra: &extra[range.start * d_extra..range.end * d_extra],
+            d_extra,
+            skipped_tau: if self.samples.skipped_tau.is_empty() {
+                &[]
+            } else {
+                &self.samples.skipped_tau[range]
+            },
+        }
+    }
+
     /// Composites every ray; `extra` holds `d_extra` channels per surviving sample (may be
     /// empty with `d_extra = 0`). Returns the composited extra channels, `[n_rays * d_extra]`.
     pub fn composite(&mut self, extra: &[f32], d_extra: usize) -> Vec<f32> {
         let n_rays = self.samples.n_rays();
-        self.weights = vec![0.0; self.samples.len()];
-        self.colors = vec![RayColor::default(); n_rays];
+        let mut weights = vec![0.0; self.samples.len()];
+        let mut colors = vec![RayColor::default(); n_rays];
         let mut extra_out = vec![0.0; n_rays * d_extra];
-        for r in 0..n_rays {
-            let range = self.samples.range(r);
-            let s = RaySamples {
-                sigma: &self.density[range.clone()],
-                delta: &self.samples.delta[range.clone()],
-                t: &self.samples.t[range.clone()],
-                rgb: &self.rgb[range.clone()],
-                extra: &extra[range.start * d_extra..range.end * d_extra],
-                d_extra,
-                skipped_tau: if self.samples.skipped_tau.is_empty() { &[] } else { &self.samples.skipped_tau[range.clone()] },
-            };
-            self.colors[r] = composite::composite(
+        for (r, color) in colors.iter_mut().enumerate() {
+            let s = self.ray_samples(r, extra, d_extra);
+            *color = composite::composite(
                 &s,
-                &mut self.weights[range.clone()],
+                &mut weights[self.samples.range(r)],
                 &mut extra_out[r * d_extra..(r + 1) * d_extra],
             );
         }
+        self.weights = weights;
+        self.colors = colors;
         extra_out
     }
 
@@ -201,15 +212,7 @@ impl Rendered {
         let mut g_extra = vec![0.0; n * d_extra];
         for (r, g) in grads.iter().enumerate() {
             let range = self.samples.range(r);
-            let s = RaySamples {
-                sigma: &self.density[range.clone()],
-                delta: &self.samples.delta[range.clone()],
-                t: &self.samples.t[range.clone()],
-                rgb: &self.rgb[range.clone()],
-                extra: &extra[range.start * d_extra..range.end * d_extra],
-                d_extra,
-                skipped_tau: if self.samples.skipped_tau.is_empty() { &[] } else { &self.samples.skipped_tau[range.clone()] },
-            };
+            let s = self.ray_samples(r, extra, d_extra);
             composite::composite_backward(
                 &s,
                 &self.weights[range.clone()],

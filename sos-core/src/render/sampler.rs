@@ -95,13 +95,7 @@ pub enum Spacing {
     },
 }
 
-/// Where on a ray candidates go: the interval `[s0, s1]` of a monotone parameter and how it
-/// maps to distance.
-#[derive(Debug, Clone, Copy)]
-struct RayParam {
-    t_of: fn(&RayCtx, f32) -> f32,
-}
-
+/// Per-ray quantities the spacing functions need.
 struct RayCtx {
     origin: Vec3,
     direction: Vec3,
@@ -205,12 +199,11 @@ pub fn march(
     options: MarchOptions,
     rng: &mut impl Rng,
 ) -> Samples {
-    let param = RayParam {
-        t_of: match spacing_for(extent) {
-            Spacing::Linear => t_linear,
-            Spacing::Disparity { .. } => t_disparity,
-            Spacing::SphereThenDisparity { .. } => t_sphere,
-        },
+    // Maps the normalised position s ∈ [0, 1] along a ray to a distance.
+    let t_of: fn(&RayCtx, f32) -> f32 = match spacing_for(extent) {
+        Spacing::Linear => t_linear,
+        Spacing::Disparity { .. } => t_disparity,
+        Spacing::SphereThenDisparity { .. } => t_sphere,
     };
     let mut out = Samples { ray_start: Vec::with_capacity(rays.len() + 1), ..Default::default() };
     out.ray_start.push(0);
@@ -219,9 +212,9 @@ pub fn march(
     for r in 0..rays.len() {
         let (o, d) = (rays.origins[r], rays.directions[r]);
         if let Some(ctx) = ray_context(extent, o, d) {
-            let mut t_prev = (param.t_of)(&ctx, 0.0);
+            let mut t_prev = t_of(&ctx, 0.0);
             for i in 0..steps {
-                let t_next = (param.t_of)(&ctx, (i + 1) as f32 * inv_steps);
+                let t_next = t_of(&ctx, (i + 1) as f32 * inv_steps);
                 let xi = if options.stratified { rng.gen::<f32>() } else { 0.5 };
                 let t = t_prev + xi * (t_next - t_prev);
                 let delta = t_next - t_prev;
