@@ -47,6 +47,21 @@ pub struct RayColor {
     pub acc: f32,
 }
 
+impl RayColor {
+    /// The expected 3D point `Σ w_k x_k = acc · origin + depth · direction` of a ray with a
+    /// unit `direction` (the ray origin for an empty ray).
+    pub fn expected_point(&self, origin: [f32; 3], direction: [f32; 3]) -> [f32; 3] {
+        if self.acc <= EMPTY_RAY_ACC {
+            return origin;
+        }
+        [
+            self.acc * origin[0] + self.depth * direction[0],
+            self.acc * origin[1] + self.depth * direction[1],
+            self.acc * origin[2] + self.depth * direction[2],
+        ]
+    }
+}
+
 /// Computes the weights `w` of one ray (`weights.len() == sigma.len()`); `skipped_tau` as in
 /// [`RaySamples`].
 pub fn weights(sigma: &[f32], delta: &[f32], skipped_tau: &[f32], weights: &mut [f32]) {

@@ -4,8 +4,9 @@
 //! Foreground rules (`masks.foreground`):
 //! - `saliency`: the cluster with the highest mean teacher saliency. The stage-2 extractor runs
 //!   on the whole rendered view; its coarse saliency grid is upsampled (nearest) to the image.
-//! - `focus`: the cluster whose rendered 3D points (`origin + direction · depth`, empty rays
-//!   excluded) lie nearest, on average, to a focus point. For object-centric rigs it is
+//! - `focus`: the cluster holding most of the pixels whose rendered 3D points
+//!   (`origin + direction · depth`, empty rays excluded) lie nearest a focus point (the nearest
+//!   [`FOCUS_VOTE_FRACTION`] of them vote). For object-centric rigs it is
 //!   [`Scene::focus_point`], where the training cameras' axes meet. When every training axis is
 //!   within [`PARALLEL_AXES_DEG`] of their mean (forward-facing rigs), the axes do not meet, so
 //!   the focus is instead the point on the mean camera axis (through the mean camera centre)
@@ -164,11 +165,32 @@ pub fn foreground_by_saliency(labels: &[u32], k: usize, saliency: &[f32]) -> usi
     pick(&cluster_means(labels, k, |i| Some(saliency[i] as f64)), |a, b| a > b)
 }
 
-/// The cluster (of `k`) whose points lie nearest `focus` on average; pixels without a point
-/// (empty rays) do not count, and a cluster of only empty rays is never chosen unless all are.
+/// Fraction of a view's pixels, nearest the focus point, that vote for the foreground cluster.
+pub const FOCUS_VOTE_FRACTION: f64 = 0.05;
+
+/// The cluster (of `k`) holding most of the pixels whose points lie nearest `focus` (the
+/// nearest [`FOCUS_VOTE_FRACTION`] of the pixels with a point). A vote rather than a mean
+/// distance: a cluster that contains the object together with far walls still wins, while one
+/// that is merely close on average (the ground under the object) does not. Pixels without a
+/// point (empty rays) do not vote; with no points at all, cluster 0 is returned.
 pub fn foreground_by_focus(labels: &[u32], k: usize, points: &[Option<Vec3>], focus: Vec3) -> usize {
-    let dist = |i: usize| points[i].map(|p| dot(sub(p, focus), sub(p, focus)).sqrt() as f64);
-    pick(&cluster_means(labels, k, dist), |a, b| a < b)
+    let mut near: Vec<(f32, u32)> = points
+        .iter()
+        .zip(labels)
+        .filter_map(|(p, &l)| p.map(|p| (dot(sub(p, focus), sub(p, focus)), l)))
+        .collect();
+    if near.is_empty() {
+        return 0;
+    }
+    let n_votes = ((near.len() as f64 * FOCUS_VOTE_FRACTION).ceil() as usize).clamp(1, near.len());
+    near.select_nth_unstable_by(n_votes - 1, |a, b| a.0.total_cmp(&b.0));
+    let mut votes = vec![0usize; k.max(1)];
+    for &(_, l) in &near[..n_votes] {
+        if (l as usize) < votes.len() {
+            votes[l as usize] += 1;
+        }
+    }
+    (0..votes.len()).max_by_key(|&c| (votes[c], std::cmp::Reverse(c))).unwrap_or(0)
 }
 
 /// Where the `focus` rule measures distances from.
@@ -417,6 +439,22 @@ mod tests {
         assert_eq!(foreground_by_focus(&labels, 2, &points, [0.0; 3]), 1);
         // A cluster of only empty rays is background.
         let points = vec![None, None, Some([9.0, 0.0, 0.0]), Some([9.0, 0.0, 0.0]), None];
+        assert_eq!(foreground_by_focus(&labels, 2, &points, [0.0; 3]), 1);
+    }
+
+    #[test]
+    fn focus_prefers_the_cluster_containing_the_object_over_the_ground_around_it() {
+        // Cluster 1: the object (10 points at 0.5 from the focus) plus 90 far wall points.
+        // Cluster 0: 100 ground points at 1.0 from the focus. The mean distance favours the
+        // ground; the nearest pixels belong to the object.
+        let mut labels = Vec::new();
+        let mut points = Vec::new();
+        for i in 0..100 {
+            labels.push(1);
+            points.push(Some(if i < 10 { [0.5, 0.0, 0.0] } else { [6.0, 0.0, 0.0] }));
+            labels.push(0);
+            points.push(Some([0.0, -1.0, 0.0]));
+        }
         assert_eq!(foreground_by_focus(&labels, 2, &points, [0.0; 3]), 1);
     }
 

@@ -17,6 +17,8 @@ pub struct ViewQuality {
     pub psnr: f64,
     /// Mean squared error.
     pub mse: f64,
+    /// Structural similarity (11x11 Gaussian window, as the reference).
+    pub ssim: f64,
 }
 
 /// Image-quality summary over the held-out views.
@@ -26,6 +28,8 @@ pub struct ImageEval {
     pub psnr: f64,
     /// Mean of per-view PSNR (the reference's offline value).
     pub psnr_mean_per_view: f64,
+    /// Mean SSIM over views.
+    pub ssim: f64,
     /// Per-view values.
     pub views: Vec<ViewQuality>,
     /// Rays rendered per second while rendering the views.
@@ -46,7 +50,10 @@ pub fn evaluate_views(session: &Session, write_images: bool) -> Result<ImageEval
         if write_images {
             img.save_png(&session.run_dir.join("test").join(format!("{}.png", v.name)))?;
         }
-        views.push(ViewQuality { view: v.name.clone(), psnr: psnr_of_mse(mse), mse });
+        let ssim = crate::metrics::ssim(&img, &v.image).map_err(|e| {
+            crate::error::IoError::file(&session.run_dir, format!("SSIM of view {}: {e}", v.name))
+        })?;
+        views.push(ViewQuality { view: v.name.clone(), psnr: psnr_of_mse(mse), mse, ssim });
     }
     let elapsed = started.elapsed().as_secs_f64().max(1e-9);
     let n = views.len().max(1) as f64;
@@ -54,6 +61,7 @@ pub fn evaluate_views(session: &Session, write_images: bool) -> Result<ImageEval
     Ok(ImageEval {
         psnr: psnr_of_mse(mean_mse),
         psnr_mean_per_view: views.iter().map(|v| v.psnr).sum::<f64>() / n,
+        ssim: views.iter().map(|v| v.ssim).sum::<f64>() / n,
         views,
         render_rays_per_second: rays as f64 / elapsed,
     })

@@ -21,12 +21,12 @@ pub fn run(config: &Path, checkpoint: Option<&Path>) -> anyhow::Result<()> {
         "steps": session.step,
         "test": eval,
     });
-    println!("{:<24} {:>8}", "view", "PSNR");
+    println!("{:<24} {:>8} {:>8}", "view", "PSNR", "SSIM");
     for v in &eval.views {
-        println!("{:<24} {:>8.2}", v.view, v.psnr);
+        println!("{:<24} {:>8.2} {:>8.4}", v.view, v.psnr, v.ssim);
     }
     println!("{:<24} {:>8.2}", "PSNR of mean MSE", eval.psnr);
-    println!("{:<24} {:>8.2}", "mean PSNR", eval.psnr_mean_per_view);
+    println!("{:<24} {:>8.2} {:>8.4}", "mean", eval.psnr_mean_per_view, eval.ssim);
     match loaded {
         Some(loaded) => {
             println!();

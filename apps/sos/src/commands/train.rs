@@ -48,7 +48,13 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
     });
     // Written now so stage-1 results survive a failing stage 2.
     super::write_json(&metrics_path, &report).context("writing metrics")?;
-    println!("held-out PSNR {:.2} dB (mean of per-view {:.2} dB) over {} views", eval.psnr, eval.psnr_mean_per_view, eval.views.len());
+    println!(
+        "held-out PSNR {:.2} dB (mean of per-view {:.2} dB), SSIM {:.4}, over {} views",
+        eval.psnr,
+        eval.psnr_mean_per_view,
+        eval.ssim,
+        eval.views.len()
+    );
     println!("render speed {:.0} rays/s; outputs in {}", eval.render_rays_per_second, session.run_dir.display());
 
     if session.config.segment.steps > 0 {
