@@ -143,6 +143,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
         for notice in seg.sampler.take_notices() {
             bar.println(format!("notice: {notice}"));
         }
+        let timer = Instant::now();
         let rays = patch_rays(&session.scene, &patches);
         let mut options = session.render_options(false);
         if !joint {
@@ -181,7 +182,9 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
             }
             rendered[patch].data[pix * 3..pix * 3 + 3].copy_from_slice(&r.colors[ray].rgb);
         }
+        let t_render = timer.elapsed().as_secs_f64();
         let features = seg.teacher.features(&session.scene, &patches, &rendered, !joint);
+        let t_teacher = timer.elapsed().as_secs_f64();
         let cls: Vec<Vec<f32>> = features.iter().map(|f| f.cls.clone()).collect();
         let negatives = seg.miner.negatives(&cls, &mut rng);
         let batch = PatchBatch {
@@ -200,6 +203,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
             stats.total += l.weight as f64 * v.total;
             stats.terms.extend(v.terms);
         }
+        let t_losses = timer.elapsed().as_secs_f64();
         let mut photometric = 0.0f64;
         if joint {
             photometric = patch_mse(&r.colors, &rendered_targets(session, &patches, p));
@@ -238,6 +242,15 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
         seg.head.backward(&tape, &grad_sample);
         let lr_factor = cfg.final_lr_factor.powf(seg.step as f32 / cfg.steps.max(1) as f32);
         seg.head.step(lr_factor);
+        if std::env::var("SOS_PROFILE").is_ok() {
+            eprintln!(
+                "stage 2: render+head {:.3} teacher {:.3} losses {:.3} backward {:.3}",
+                t_render,
+                t_teacher - t_render,
+                t_losses - t_teacher,
+                timer.elapsed().as_secs_f64() - t_losses
+            );
+        }
 
         if joint {
             // The field learns from the photometric loss and from the logits' dependence on
