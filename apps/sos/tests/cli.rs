@@ -217,3 +217,30 @@ fn masks_only_without_a_head_says_what_to_do() {
     assert!(stderr.contains("s1.toml") && stderr.contains("segment.steps"), "{stderr}");
     std::fs::remove_dir_all(dir).ok();
 }
+
+#[test]
+fn ablations_run_from_config_alone() {
+    // Appearance-only loss list and joint training (photometric weight > 0, trainable field).
+    let dir = temp_dir("ablation");
+    let config = format!(
+        "{}photometric_weight = 1.0\n\n[[loss]]\nkind = \"appearance\"\nweight = 1.0\n",
+        tiny_config("ablation", 30, 4)
+    );
+    std::fs::write(dir.join("ablation.toml"), config).unwrap();
+    let out = sos(&["train", "ablation.toml", "--quiet"], &dir);
+    assert!(out.status.success(), "{}\n{}", text(&out.stdout), text(&out.stderr));
+    let metrics: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("runs/ablation/metrics.json")).unwrap()).unwrap();
+    let terms: Vec<String> = metrics["stage2"]["last_step"]["terms"]
+        .as_array()
+        .expect("stage-2 terms are recorded")
+        .iter()
+        .map(|t| t[0].as_str().unwrap().to_owned())
+        .collect();
+    assert!(terms.iter().any(|t| t.starts_with("appearance")), "{terms:?}");
+    assert!(terms.iter().any(|t| t == "photometric"), "{terms:?}");
+    assert!(!terms.iter().any(|t| t.starts_with("geometry")), "{terms:?}");
+    for t in metrics["stage2"]["last_step"]["terms"].as_array().unwrap() {
+        assert!(t[1].as_f64().unwrap().is_finite(), "{t:?}");
+    }
+}

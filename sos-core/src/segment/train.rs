@@ -204,9 +204,9 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
             stats.terms.extend(v.terms);
         }
         let t_losses = timer.elapsed().as_secs_f64();
-        let mut photometric = 0.0f64;
+        let targets = if joint { rendered_targets(session, &patches, p) } else { Vec::new() };
         if joint {
-            photometric = patch_mse(&r.colors, &rendered_targets(session, &patches, p));
+            let photometric = patch_mse(&r.colors, &targets);
             stats.total += cfg.photometric_weight as f64 * photometric;
             stats.terms.push(("photometric".into(), photometric));
         }
@@ -255,7 +255,6 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
         if joint {
             // The field learns from the photometric loss and from the logits' dependence on
             // the compositing weights.
-            let targets = rendered_targets(session, &patches, p);
             let scale = 2.0 * cfg.photometric_weight / (rays.len() * 3) as f32;
             let grads: Vec<RayGrad> = (0..rays.len())
                 .map(|ray| {
@@ -270,7 +269,6 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
             let tape = r.tape.take();
             session.field.backward(&r.samples.positions, &r.samples.directions, tape, &g_sigma, &g_rgb);
             session.field.step(lr_factor * session.config.train.final_lr_factor);
-            let _ = photometric;
         }
         seg.step += 1;
         last = stats;
