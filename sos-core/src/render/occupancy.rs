@@ -1,7 +1,7 @@
 //! Occupancy grid for empty-space skipping (instant-ngp / nerfacc style): a coarse grid over
 //! the unit cube holding a decaying maximum of the field's density, thresholded to a bitmask.
 
-use rand::Rng;
+use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
 use crate::camera::Vec3;
@@ -79,5 +79,3 @@ impl OccupancyGrid {
         }
     }
 }
-
-use rand::SeedableRng;

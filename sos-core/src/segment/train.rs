@@ -15,7 +15,7 @@ use crate::render::renderer::render;
 use crate::segment::defaults;
 use crate::segment::head::SegHead;
 use crate::segment::patches::{patch_rays, PatchSampler};
-use crate::segment::teacher::Teacher;
+use crate::segment::teacher::{captured_patch, Teacher};
 use crate::train::session::{kind_of, Session};
 
 /// Consecutive non-finite losses after which stage 2 stops.
@@ -204,7 +204,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
             stats.terms.extend(v.terms);
         }
         let t_losses = timer.elapsed().as_secs_f64();
-        let targets = if joint { rendered_targets(session, &patches, p) } else { Vec::new() };
+        let targets = if joint { captured_targets(session, &patches) } else { Vec::new() };
         if joint {
             let photometric = patch_mse(&r.colors, &targets);
             stats.total += cfg.photometric_weight as f64 * photometric;
@@ -294,18 +294,14 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
 }
 
 /// The photographs' colours at each patch ray, patch after patch.
-fn rendered_targets(session: &Session, patches: &[crate::segment::patches::Patch], p: usize) -> Vec<[f32; 3]> {
-    let mut out = Vec::with_capacity(patches.len() * p * p);
-    for patch in patches {
-        let img = &session.scene.views[patch.view].image;
-        for a in 0..p as u32 {
-            for b in 0..p as u32 {
-                let (col, row) = patch.grid.pixel(a, b);
-                out.push(img.pixel(col as usize, row as usize));
-            }
-        }
-    }
-    out
+fn captured_targets(session: &Session, patches: &[crate::segment::patches::Patch]) -> Vec<[f32; 3]> {
+    patches
+        .iter()
+        .flat_map(|patch| {
+            let img = captured_patch(&session.scene, patch);
+            img.data.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect::<Vec<_>>()
+        })
+        .collect()
 }
 
 fn patch_mse(colors: &[crate::render::composite::RayColor], targets: &[[f32; 3]]) -> f64 {

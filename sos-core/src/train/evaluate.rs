@@ -45,8 +45,9 @@ pub fn evaluate_views(session: &Session, write_images: bool) -> Result<ImageEval
         let v = &session.scene.views[i];
         let (img, _) = session.render_view(&v.camera);
         rays += img.width * img.height;
-        let mse = img.data.iter().zip(&v.image.data).map(|(a, b)| ((a - b) * (a - b)) as f64).sum::<f64>()
-            / img.data.len() as f64;
+        let mse = crate::metrics::mse(&img.data, &v.image.data).map_err(|e| {
+            crate::error::IoError::file(&session.run_dir, format!("MSE of view {}: {e}", v.name))
+        })?;
         if write_images {
             img.save_png(&session.run_dir.join("test").join(format!("{}.png", v.name)))?;
         }

@@ -27,9 +27,10 @@ pub struct StepStats {
     pub opacity: f64,
 }
 
-/// PSNR of a mean squared error on `[0, 1]` images.
+/// PSNR of a mean squared error on `[0, 1]` images, floored at 120 dB so that a perfect
+/// batch or view stays a finite number in logs and JSON.
 pub fn psnr_of_mse(mse: f64) -> f64 {
-    -10.0 * mse.max(1e-12).log10()
+    crate::metrics::psnr_from_mse(mse.max(1e-12))
 }
 
 /// Runs stage 1 from `session.step` to `train.steps`, checkpointing along the way.
