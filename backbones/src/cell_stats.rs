@@ -9,6 +9,7 @@
 //! | 3                  | log standard deviation of the three opponent channels          |
 //! | `orientation_bins` | gradient-orientation histogram (unsigned, magnitude-weighted)  |
 //! | 1                  | log mean gradient magnitude (texture energy)                   |
+//! | 1                  | border distinctness (below), squashed, times `saliency_weight` |
 //!
 //! Every channel is centred and scaled with FIXED constants (typical values of natural
 //! images), never with per-image statistics, so the same surface gets the same features in
@@ -17,7 +18,10 @@
 //! what the contrastive losses and pair mining need.
 //!
 //! The saliency map is the colour distinctness of each cell from the cells on the image
-//! border (the usual background prior), normalised to `[0, 1]`.
+//! border (the usual background prior), normalised to `[0, 1]`. It is also a feature channel:
+//! local statistics alone put a white patch of the object next to a white wall, while DINO's
+//! features carry objectness; the saliency channel is the weight-free stand-in for it, so
+//! cells of a salient object correlate with each other more than with the background.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -28,7 +32,7 @@ use sos_core::registry::Registration;
 
 const KIND: &str = "cell-stats";
 /// Bump when the features change, so cached teacher features are recomputed.
-const VERSION: u32 = 1;
+const VERSION: u32 = 2;
 
 // Fixed normalisation constants (see the module docs for why they are not per-image).
 /// Scale of the chromatic opponent means (saturated colours reach about ±0.7).
@@ -65,6 +69,8 @@ pub struct CellStatsConfig {
     pub orientation_weight: f32,
     /// Weight of the texture-energy channel.
     pub energy_weight: f32,
+    /// Weight of the saliency channel (objectness; 0 turns it off).
+    pub saliency_weight: f32,
 }
 
 impl Default for CellStatsConfig {
@@ -76,6 +82,7 @@ impl Default for CellStatsConfig {
             spread_weight: 0.5,
             orientation_weight: 1.0,
             energy_weight: 0.5,
+            saliency_weight: 5.0,
         }
     }
 }
@@ -97,6 +104,7 @@ impl CellStatsConfig {
             ("spread_weight", self.spread_weight),
             ("orientation_weight", self.orientation_weight),
             ("energy_weight", self.energy_weight),
+            ("saliency_weight", self.saliency_weight),
         ];
         for (key, w) in weights {
             if !(w.is_finite() && w >= 0.0) {
@@ -109,9 +117,9 @@ impl CellStatsConfig {
         Ok(())
     }
 
-    /// Number of feature channels: 3 + 3 + `orientation_bins` + 1.
+    /// Number of feature channels: 3 + 3 + `orientation_bins` + 1 + 1.
     pub fn channels(&self) -> usize {
-        7 + self.orientation_bins
+        8 + self.orientation_bins
     }
 }
 
@@ -177,16 +185,18 @@ impl CellStats {
             })
             .collect();
 
+        let distance = border_distance(&cells, gh, gw, &self.config);
         let n = cells.len();
         let mut data = vec![0.0; channels * n];
         let mut cls = vec![0.0; channels];
-        for (i, f) in cells.iter().enumerate() {
-            for (k, &v) in f.iter().enumerate() {
+        for (i, (f, d)) in cells.iter().zip(&distance).enumerate() {
+            let salient = self.config.saliency_weight * (d / (d + SALIENCY_HALF) - 0.5);
+            for (k, &v) in f.iter().chain([&salient]).enumerate() {
                 data[k * n + i] = v;
                 cls[k] += v / n as f32;
             }
         }
-        let saliency = border_distinctness(&cells, gh, gw, &self.config);
+        let saliency = normalized_saliency(&distance);
         FeatureMap { channels, height: gh, width: gw, data, cls, saliency: Some(saliency) }
     }
 
@@ -260,13 +270,14 @@ impl FeatureExtractor for CellStats {
         let c = &self.config;
         format!(
             "{KIND}/v{VERSION} cell={} orientation_bins={} colour_weight={} spread_weight={} \
-             orientation_weight={} energy_weight={}",
+             orientation_weight={} energy_weight={} saliency_weight={}",
             c.cell,
             c.orientation_bins,
             c.colour_weight,
             c.spread_weight,
             c.orientation_weight,
-            c.energy_weight
+            c.energy_weight,
+            c.saliency_weight
         )
     }
 }
@@ -311,16 +322,16 @@ fn gradients(image: &RgbImage) -> (Vec<f32>, Vec<f32>) {
     (magnitude, orientation)
 }
 
-/// Saliency of each cell: mean distance of its colour features (mean and spread, fixed
-/// scales, unweighted) to the nearest eighth of the border cells, min–max normalised to
-/// `[0, 1]` (all zeros when every cell is alike). A cell that resembles some part of the
-/// border scores low; an object unlike the whole border scores high.
-fn border_distinctness(
-    cells: &[Vec<f32>],
-    gh: usize,
-    gw: usize,
-    cfg: &CellStatsConfig,
-) -> Vec<f32> {
+/// Distance from the border below which a cell counts as background-like: the saliency
+/// feature channel is `raw / (raw + SALIENCY_HALF)`, a fixed squashing (not per image) so that
+/// a patch showing only background has no "salient" cells.
+const SALIENCY_HALF: f32 = 1.0;
+
+/// Distinctness of each cell from the image border: the mean distance of its colour features
+/// (mean and spread, fixed scales, unweighted) to the nearest eighth of the border cells. A
+/// cell that resembles some part of the border scores low; an object unlike the whole border
+/// scores high.
+fn border_distance(cells: &[Vec<f32>], gh: usize, gw: usize, cfg: &CellStatsConfig) -> Vec<f32> {
     // Undo the user weights so saliency does not depend on them.
     let unweight = |w: f32| if w > 0.0 { 1.0 / w } else { 0.0 };
     let (cw, sw) = (unweight(cfg.colour_weight), unweight(cfg.spread_weight));
@@ -335,8 +346,7 @@ fn border_distinctness(
         })
         .collect();
     let m = (border.len() / 8).max(1);
-    let raw: Vec<f32> = desc
-        .par_iter()
+    desc.par_iter()
         .map(|d| {
             let mut dists: Vec<f32> = border
                 .iter()
@@ -347,7 +357,13 @@ fn border_distinctness(
             dists.select_nth_unstable_by(m - 1, f32::total_cmp);
             dists[..m].iter().sum::<f32>() / m as f32
         })
-        .collect();
+        .collect()
+}
+
+/// The saliency map: [`border_distance`] min–max normalised to `[0, 1]` per image (all zeros
+/// when every cell is alike); only the ranking within one image matters for choosing the
+/// foreground cluster.
+fn normalized_saliency(raw: &[f32]) -> Vec<f32> {
     let lo = raw.iter().copied().fold(f32::INFINITY, f32::min);
     let hi = raw.iter().copied().fold(f32::NEG_INFINITY, f32::max);
     if hi - lo > 1e-9 {
@@ -393,13 +409,13 @@ mod tests {
         let ex = extractor();
         let img = image(37, 21, |c, r| [c as f32 / 37.0, r as f32 / 21.0, 0.3]);
         let map = ex.extract_one(&img);
-        assert_eq!((map.channels, map.height, map.width), (15, 2, 4));
-        assert_eq!(map.data.len(), 15 * 8);
-        assert_eq!(map.cls.len(), 15);
+        assert_eq!((map.channels, map.height, map.width), (16, 2, 4));
+        assert_eq!(map.data.len(), 16 * 8);
+        assert_eq!(map.cls.len(), 16);
         assert_eq!(map.saliency.as_ref().unwrap().len(), 8);
         assert!(map.data.iter().all(|v| v.is_finite()));
         // cls is the mean over cells.
-        for k in 0..15 {
+        for k in 0..16 {
             let mean = map.data[k * 8..(k + 1) * 8].iter().sum::<f32>() / 8.0;
             assert!((map.cls[k] - mean).abs() < 1e-5);
         }
@@ -410,13 +426,13 @@ mod tests {
         assert_eq!((strip.height, strip.width), (1, 5));
         // Degenerate input does not panic.
         let empty = ex.extract_one(&RgbImage::new(0, 0));
-        assert_eq!((empty.height, empty.width, empty.data.len()), (1, 1, 15));
+        assert_eq!((empty.height, empty.width, empty.data.len()), (1, 1, 16));
         let broken = RgbImage { width: 10, height: 10, data: vec![0.5; 7] };
-        assert_eq!(ex.extract_one(&broken).data, vec![0.0; 15]);
+        assert_eq!(ex.extract_one(&broken).data, vec![0.0; 16]);
         // Other settings change the channel count.
         let cfg = CellStatsConfig { cell: 4, orientation_bins: 12, ..Default::default() };
         let map = CellStats::new(cfg).unwrap().extract_one(&img);
-        assert_eq!((map.channels, map.height, map.width), (19, 5, 9));
+        assert_eq!((map.channels, map.height, map.width), (20, 5, 9));
     }
 
     #[test]
@@ -447,6 +463,11 @@ mod tests {
         (mean(&same), mean(&cross))
     }
 
+    /// The extractor without the saliency channel (which depends on the whole image).
+    fn statistics_only() -> CellStats {
+        CellStats::new(CellStatsConfig { saliency_weight: 0.0, ..Default::default() }).unwrap()
+    }
+
     #[test]
     fn same_texture_is_more_similar_than_different_texture() {
         let mut rng = rand::rngs::StdRng::seed_from_u64(11);
@@ -463,7 +484,7 @@ mod tests {
                 [v * 0.8 + n, v + n, v * 0.8 + n]
             }
         });
-        let (same, cross) = same_vs_cross(&extractor().extract_one(&img));
+        let (same, cross) = same_vs_cross(&statistics_only().extract_one(&img));
         eprintln!("colour+texture: same {same:.3}, cross {cross:.3}");
         assert!(same > 0.9, "same-region cosine {same}");
         assert!(same - cross > 0.5, "same {same} vs cross {cross}");
@@ -474,7 +495,7 @@ mod tests {
             let v = if c < 64 { (r % 6 < 3) as u8 } else { (c % 6 < 3) as u8 } as f32 * 0.6 + 0.2;
             [v + n, v + n, v + n]
         });
-        let (same, cross) = same_vs_cross(&extractor().extract_one(&img));
+        let (same, cross) = same_vs_cross(&statistics_only().extract_one(&img));
         eprintln!("orientation only: same {same:.3}, cross {cross:.3}");
         assert!(same > 0.9, "same-region cosine {same}");
         assert!(same - cross > 0.3, "orientation only: same {same} vs cross {cross}");
@@ -490,8 +511,8 @@ mod tests {
                 other
             }
         };
-        let a = extractor().extract_one(&image(128, 32, |c, r| stripes(c, r, [0.9, 0.1, 0.1])));
-        let b = extractor().extract_one(&image(128, 32, |c, r| stripes(c, r, [0.0, 0.2, 1.0])));
+        let a = statistics_only().extract_one(&image(128, 32, |c, r| stripes(c, r, [0.9, 0.1, 0.1])));
+        let b = statistics_only().extract_one(&image(128, 32, |c, r| stripes(c, r, [0.0, 0.2, 1.0])));
         // Cells 0..7 do not touch the boundary at column 64 (gradients reach one pixel).
         for r in 0..4 {
             for c in 0..7 {
@@ -536,11 +557,43 @@ mod tests {
     }
 
     #[test]
+    fn saliency_channel_marks_the_object_and_only_the_object() {
+        let scene = |disc: bool, seed: u64| {
+            let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+            image(96, 80, move |c, r| {
+                let (dx, dy) = (c as f32 - 48.0, r as f32 - 40.0);
+                let n: f32 = rng.gen_range(-0.1..0.1);
+                if disc && dx * dx + dy * dy < 20.0 * 20.0 {
+                    [0.85 + n * 0.5, 0.15, 0.1]
+                } else {
+                    [0.4 + n, 0.45 + n, 0.55 + n]
+                }
+            })
+        };
+        let channel = |map: &FeatureMap, r: usize, c: usize| *cell_vec(map, r, c).last().unwrap();
+        let with = extractor().extract_one(&scene(true, 5));
+        let (centre, corner) = (channel(&with, 4, 5), channel(&with, 0, 0));
+        eprintln!("saliency channel: centre {centre:.3}, corner {corner:.3}");
+        assert!(centre > 0.0 && corner < -1.0, "centre {centre}, corner {corner}");
+        // Fixed squashing, not per-image normalisation: a view of background alone has no
+        // salient cell, although its normalised saliency map still spans [0, 1].
+        let without = extractor().extract_one(&scene(false, 6));
+        let most = (0..with.height * with.width)
+            .map(|i| channel(&without, i / without.width, i % without.width))
+            .fold(f32::NEG_INFINITY, f32::max);
+        assert!(most < -1.0, "most salient background cell {most}");
+        assert!(without.saliency.unwrap().iter().any(|&v| v == 1.0));
+        // The weight scales the channel; 0 turns it off.
+        let off = statistics_only().extract_one(&scene(true, 5));
+        assert_eq!(channel(&off, 4, 5), 0.0);
+    }
+
+    #[test]
     fn toml_round_trip_and_validation() {
         let cfg: Box<dyn FeatureExtractorConfig> =
             toml::from_str("kind = \"cell-stats\"\ncell = 16\norientation_weight = 2.0\n").unwrap();
         let built = cfg.build().unwrap();
-        assert!(built.identity().starts_with("cell-stats/v1 cell=16 "), "{}", built.identity());
+        assert!(built.identity().starts_with("cell-stats/v2 cell=16 "), "{}", built.identity());
         assert!(built.identity().contains("orientation_weight=2 "), "{}", built.identity());
         let text = toml::to_string(&cfg).unwrap();
         assert!(text.contains("kind = \"cell-stats\""), "{text}");
@@ -559,7 +612,8 @@ mod tests {
             ("cell = 1", "cell"),
             ("orientation_bins = 1", "orientation_bins"),
             ("spread_weight = -1.0", "spread_weight"),
-            ("colour_weight = 0.0\nspread_weight = 0.0\norientation_weight = 0.0\nenergy_weight = 0.0", "colour_weight"),
+            ("saliency_weight = -2.0", "saliency_weight"),
+            ("colour_weight = 0.0\nspread_weight = 0.0\norientation_weight = 0.0\nenergy_weight = 0.0\nsaliency_weight = 0.0", "colour_weight"),
         ] {
             let cfg: Box<dyn FeatureExtractorConfig> =
                 toml::from_str(&format!("kind = \"cell-stats\"\n{text}")).unwrap();

@@ -63,6 +63,17 @@ enum Command {
         #[arg(long)]
         checkpoint: Option<PathBuf>,
     },
+    /// IoU and ARI of a predicted mask PNG against a reference mask (resized to the
+    /// prediction's size, nearest-neighbour).
+    Compare {
+        /// Predicted mask (e.g. `runs/flower/masks/image000.png`).
+        prediction: PathBuf,
+        /// Reference mask (any size; white = foreground).
+        reference: PathBuf,
+        /// Also write the figures to this JSON file.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// List every registered plugin kind, per role.
     List,
     /// Write a complete default configuration.
@@ -88,6 +99,9 @@ fn main() -> ExitCode {
         }
         Command::Render { config, checkpoint } => commands::render::run(&config, checkpoint.as_deref()),
         Command::Eval { config, checkpoint } => commands::eval::run(&config, checkpoint.as_deref()),
+        Command::Compare { prediction, reference, out } => {
+            commands::compare::run(&prediction, &reference, out.as_deref())
+        }
         Command::List => commands::list::run(),
         Command::Init { path, scene, field } => commands::init::run(path.as_deref(), &scene, &field),
     };

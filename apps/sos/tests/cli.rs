@@ -244,3 +244,34 @@ fn ablations_run_from_config_alone() {
         assert!(t[1].as_f64().unwrap().is_finite(), "{t:?}");
     }
 }
+
+#[test]
+fn compare_scores_a_mask_against_a_resized_reference() {
+    let dir = temp_dir("compare");
+    // Reference at twice the prediction's size: the left half is foreground.
+    let mut reference = sos_core::image::GrayImage { width: 40, height: 20, data: vec![0.0; 800] };
+    for r in 0..20 {
+        for c in 0..20 {
+            reference.data[r * 40 + c] = 1.0;
+        }
+    }
+    reference.save_png(&dir.join("reference.png")).unwrap();
+    // Prediction: the left quarter is foreground, so IoU(FG) = 1/2 and IoU(BG) = 10/15.
+    let mut pred = sos_core::image::GrayImage { width: 20, height: 10, data: vec![0.0; 200] };
+    for r in 0..10 {
+        for c in 0..5 {
+            pred.data[r * 20 + c] = 1.0;
+        }
+    }
+    pred.save_png(&dir.join("pred.png")).unwrap();
+    let out = sos(&["compare", "pred.png", "reference.png", "--out", "cmp.json"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("cmp.json")).unwrap()).unwrap();
+    assert!((json["iou_fg"].as_f64().unwrap() - 0.5).abs() < 1e-9, "{json}");
+    assert!((json["iou_bg"].as_f64().unwrap() - 10.0 / 15.0).abs() < 1e-9, "{json}");
+    assert!(text(&out.stdout).contains("IoU(FG) 0.5000"));
+
+    let missing = sos(&["compare", "pred.png", "nowhere.png"], &dir);
+    assert_eq!(missing.status.code(), Some(2));
+    assert!(text(&missing.stderr).contains("nowhere.png"), "{}", text(&missing.stderr));
+}

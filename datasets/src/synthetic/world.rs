@@ -3,6 +3,9 @@
 //! World frame: +Y up, floor at `y = 0`. A room box holds, at its centre, the foreground
 //! object (a checkered sphere on a striped cylindrical pedestal; both count as foreground), and
 //! near the walls three distractors of other shapes and colours (a box, a cylinder, a cone).
+//! The object's reds and oranges appear nowhere else in the room: the weight-free teacher
+//! (`cell-stats`) tells surfaces apart by colour and texture only, so an object painted like
+//! its surroundings would need a learned teacher such as DINO.
 //! Shading is Lambertian with one directional light, ambient light and hard shadows cast by
 //! the objects (not by the room, which would otherwise block the light).
 
@@ -142,7 +145,7 @@ impl World {
             Surface::Room(0) => {
                 let c = checker(p[2], p[1], 0.8);
                 scale(
-                    mix([0.72, 0.38, 0.28], [0.9, 0.82, 0.7], c),
+                    mix([0.45, 0.55, 0.5], [0.8, 0.82, 0.78], c),
                     0.85 + 0.25 * noise(0.4, 3),
                 )
             }
@@ -179,13 +182,13 @@ impl World {
                 let polar = ((q[1].abs() - 0.75) / 0.2).clamp(0.0, 1.0);
                 let c = c * (1.0 - polar) + 0.3 * polar;
                 scale(
-                    mix([0.95, 0.45, 0.1], [0.97, 0.93, 0.85], c),
+                    mix([0.9, 0.12, 0.1], [0.95, 0.55, 0.1], c),
                     0.9 + 0.15 * noise(0.25, 7),
                 )
             }
             Surface::Pedestal => {
                 let s = stripes(p[1], 0.2);
-                mix([0.3, 0.3, 0.34], [0.6, 0.58, 0.55], s)
+                mix([0.5, 0.07, 0.07], [0.85, 0.3, 0.22], s)
             }
             Surface::Box => scale([0.2, 0.35, 0.8], 0.7 + 0.5 * noise(0.3, 8)),
             Surface::Cylinder => {
