@@ -71,6 +71,20 @@ pub struct CellStatsConfig {
     pub energy_weight: f32,
     /// Weight of the saliency channel (objectness; 0 turns it off).
     pub saliency_weight: f32,
+    /// How the border distance becomes the saliency channel: `"fixed"` squashes it with a
+    /// fixed scale (a patch of background alone has no salient cell); `"per-image"` uses the
+    /// min–max normalised saliency map (every patch has a most salient cell).
+    pub saliency_scale: SaliencyScale,
+}
+
+/// See [`CellStatsConfig::saliency_scale`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SaliencyScale {
+    /// `d / (d + 1)`, the same for every image.
+    Fixed,
+    /// Min–max normalised within each image.
+    PerImage,
 }
 
 impl Default for CellStatsConfig {
@@ -83,6 +97,7 @@ impl Default for CellStatsConfig {
             orientation_weight: 1.0,
             energy_weight: 0.5,
             saliency_weight: 5.0,
+            saliency_scale: SaliencyScale::Fixed,
         }
     }
 }
@@ -186,17 +201,21 @@ impl CellStats {
             .collect();
 
         let distance = border_distance(&cells, gh, gw, &self.config);
+        let saliency = normalized_saliency(&distance);
         let n = cells.len();
         let mut data = vec![0.0; channels * n];
         let mut cls = vec![0.0; channels];
-        for (i, (f, d)) in cells.iter().zip(&distance).enumerate() {
-            let salient = self.config.saliency_weight * (d / (d + SALIENCY_HALF) - 0.5);
+        for (i, f) in cells.iter().enumerate() {
+            let unit = match self.config.saliency_scale {
+                SaliencyScale::Fixed => distance[i] / (distance[i] + SALIENCY_HALF),
+                SaliencyScale::PerImage => saliency[i],
+            };
+            let salient = self.config.saliency_weight * (unit - 0.5);
             for (k, &v) in f.iter().chain([&salient]).enumerate() {
                 data[k * n + i] = v;
                 cls[k] += v / n as f32;
             }
         }
-        let saliency = normalized_saliency(&distance);
         FeatureMap { channels, height: gh, width: gw, data, cls, saliency: Some(saliency) }
     }
 
@@ -270,14 +289,15 @@ impl FeatureExtractor for CellStats {
         let c = &self.config;
         format!(
             "{KIND}/v{VERSION} cell={} orientation_bins={} colour_weight={} spread_weight={} \
-             orientation_weight={} energy_weight={} saliency_weight={}",
+             orientation_weight={} energy_weight={} saliency_weight={} saliency_scale={:?}",
             c.cell,
             c.orientation_bins,
             c.colour_weight,
             c.spread_weight,
             c.orientation_weight,
             c.energy_weight,
-            c.saliency_weight
+            c.saliency_weight,
+            c.saliency_scale
         )
     }
 }

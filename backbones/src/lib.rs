@@ -5,4 +5,4 @@
 
 pub mod cell_stats;
 
-pub use cell_stats::{CellStats, CellStatsConfig};
+pub use cell_stats::{CellStats, CellStatsConfig, SaliencyScale};

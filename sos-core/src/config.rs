@@ -155,13 +155,17 @@ pub struct MaskConfig {
     pub restarts: usize,
     /// Apply a softmax to the logits before clustering (the reference run does not).
     pub softmax: bool,
+    /// Scale each pixel's logits to unit length before clustering. The contrastive losses
+    /// compare logits by direction only (cosine, or the kernel on normalised logits), so their
+    /// length carries no trained meaning; the reference clusters raw logits.
+    pub normalize: bool,
     /// Rule that names the foreground cluster.
     pub foreground: ForegroundRule,
 }
 
 impl Default for MaskConfig {
     fn default() -> Self {
-        MaskConfig { clusters: 2, restarts: 10, softmax: false, foreground: ForegroundRule::Focus }
+        MaskConfig { clusters: 2, restarts: 10, softmax: false, normalize: false, foreground: ForegroundRule::Focus }
     }
 }
 

@@ -109,8 +109,9 @@ pub fn softmax_rows(values: &[f32], d: usize) -> Vec<f32> {
     out
 }
 
-/// k-means of per-pixel logits (`[n, d]`), after a softmax when `masks.softmax`; the result
-/// may have fewer clusters than asked when the logits take fewer distinct values.
+/// k-means of per-pixel logits (`[n, d]`), after a softmax when `masks.softmax` and scaling to
+/// unit length when `masks.normalize`; the result may have fewer clusters than asked when the
+/// logits take fewer distinct values.
 pub fn cluster_logits(
     logits: &[f32],
     d: usize,
@@ -118,11 +119,14 @@ pub fn cluster_logits(
     seed: u64,
 ) -> Result<KMeansResult, crate::kmeans::KMeansError> {
     let config = KMeansConfig { k: masks.clusters, n_init: masks.restarts, seed, ..KMeansConfig::default() };
-    if masks.softmax {
-        kmeans(&softmax_rows(logits, d), d, &config)
-    } else {
-        kmeans(logits, d, &config)
+    let mut values = if masks.softmax { softmax_rows(logits, d) } else { logits.to_vec() };
+    if masks.normalize {
+        for row in values.chunks_exact_mut(d) {
+            let norm = row.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-10);
+            row.iter_mut().for_each(|v| *v /= norm);
+        }
     }
+    kmeans(&values, d, &config)
 }
 
 /// Nearest-neighbour upsampling of a `[gh, gw]` grid to `[h, w]`.
@@ -471,8 +475,8 @@ mod tests {
         }
         // Saliency is higher on the square.
         let saliency: Vec<f32> = (0..w * h).map(|i| if inside(i) { 0.7 } else { 0.2 }).collect();
-        for softmax in [false, true] {
-            let masks = MaskConfig { clusters: 2, restarts: 3, softmax, foreground: ForegroundRule::Saliency };
+        for (softmax, normalize) in [(false, false), (true, false), (false, true)] {
+            let masks = MaskConfig { clusters: 2, restarts: 3, softmax, normalize, foreground: ForegroundRule::Saliency };
             let km = cluster_logits(&logits, 2, &masks, 0).unwrap();
             assert_eq!(km.k, 2);
             let fg = foreground_by_saliency(&km.labels, km.k, &saliency);
@@ -485,6 +489,28 @@ mod tests {
             let overlay = mask.overlay();
             assert!(overlay.pixel(6, 7)[0] > 0.4 && overlay.pixel(0, 0) == [0.0; 3]);
         }
+    }
+
+    #[test]
+    fn normalized_clustering_follows_direction_not_length() {
+        // Object pixels point along +x with length 1; background along +y with lengths 1..20.
+        // By position, lengths split the background; by direction, object and background part.
+        let mut logits = Vec::new();
+        for i in 0..60 {
+            if i < 20 {
+                logits.extend([1.0f32, 0.05 * (i % 3) as f32]);
+            } else {
+                logits.extend([0.05 * (i % 3) as f32, 1.0 + (i - 20) as f32 * 0.5]);
+            }
+        }
+        let split = |normalize: bool| {
+            let masks = MaskConfig { normalize, ..MaskConfig::default() };
+            let labels = cluster_logits(&logits, 2, &masks, 0).unwrap().labels;
+            labels.iter().skip(1).take(19).all(|&l| l == labels[0])
+                && labels[20..].iter().all(|&l| l != labels[0])
+        };
+        assert!(split(true));
+        assert!(!split(false));
     }
 
     #[test]
