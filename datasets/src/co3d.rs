@@ -161,9 +161,16 @@ pub fn read_jgz<T: serde::de::DeserializeOwned>(
     path: &Path,
     hint: &str,
 ) -> Result<T, DatasetError> {
-    let bytes = read_bytes(path, hint)?;
+    parse_jgz(path, &read_bytes(path, hint)?)
+}
+
+/// Parses gzip-compressed JSON bytes (read from `path`, which errors name) into `T`.
+pub fn parse_jgz<T: serde::de::DeserializeOwned>(
+    path: &Path,
+    bytes: &[u8],
+) -> Result<T, DatasetError> {
     let mut text = Vec::new();
-    flate2::read::GzDecoder::new(bytes.as_slice())
+    flate2::read::GzDecoder::new(bytes)
         .take(MAX_JSON)
         .read_to_end(&mut text)
         .map_err(|e| {

@@ -321,6 +321,19 @@ pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
         .map(|f| {
             let img = RgbImage::load(f)?;
             Ok(match source.resize_to {
+                // Only downscaling: a size above the file's comes from a wrong H, W in the poses.
+                Some((w, h)) if w > img.width || h > img.height => {
+                    return Err(invalid(
+                        f,
+                        format!(
+                            "image is {}x{}, smaller than the {w}x{h} that {} implies for this \
+                             factor; put full-resolution images in images/ or fix H, W there",
+                            img.width,
+                            img.height,
+                            npy_path.display()
+                        ),
+                    ))
+                }
                 Some((w, h)) => img.resized(w, h),
                 None => img,
             })
