@@ -556,3 +556,61 @@ fn llff_flower_poses_match_the_reference_loader() {
     assert!((geo.hwf[2] / 8.0 - 446.88232).abs() < 1e-4, "{:?}", geo.hwf);
     assert!(geo.sphere_path.is_none());
 }
+
+/// `configs/synthetic_<format>.toml` load the layouts that the `write_layouts` example writes
+/// to `runs/layouts/` (here a small scene written to the same relative place in a temporary
+/// tree), with the generator's box where the layout has no bounds.
+#[test]
+fn synthetic_layout_configs_load_the_written_layouts() {
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let tmp = temp_dir("configs");
+    let s = scene(Rig::ObjectCentric);
+    for f in Format::ALL {
+        f.write(&s, &tmp.join("runs/layouts").join(f.name()))
+            .unwrap();
+    }
+    let config_dir = tmp.join("configs");
+    std::fs::create_dir_all(&config_dir).unwrap();
+    for f in Format::ALL {
+        let file = repo.join(format!("configs/synthetic_{}.toml", f.name()));
+        let text =
+            std::fs::read_to_string(&file).unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+        let doc: toml::Table = toml::from_str(&text).unwrap();
+        let table = doc["scene"].clone();
+        let cfg: Box<dyn sos_core::plugin::dataset::DatasetConfig> = table
+            .try_into()
+            .unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+        let loaded = cfg
+            .open(&config_dir)
+            .unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+        assert_same_views_up_to_frame(&s, &loaded, f);
+    }
+    std::fs::remove_dir_all(tmp).ok();
+}
+
+/// Same views and split; poses compared only where the loader keeps the world frame.
+fn assert_same_views_up_to_frame(original: &Scene, loaded: &Scene, f: Format) {
+    match f {
+        // Spherified / normalised frames: check the view count, split and extent.
+        Format::Llff | Format::TanksTemples => {
+            loaded.validate().unwrap();
+            assert_eq!(loaded.views.len(), original.views.len(), "{f:?}");
+            assert_eq!(loaded.test.len(), original.test.len(), "{f:?}");
+            assert!(
+                matches!(loaded.extent, SceneExtent::Unbounded { radius, .. } if radius == 1.0),
+                "{f:?}"
+            );
+        }
+        _ => {
+            assert_same_views(original, loaded, f.name());
+            let SceneExtent::Bounded { min, max } = loaded.extent else {
+                panic!("{f:?}: {:?}", loaded.extent)
+            };
+            assert!(
+                (0..3).all(|k| min[k] < ROOM_MIN[k] && max[k] > ROOM_MAX[k]),
+                "{f:?}: {min:?} {max:?}"
+            );
+            assert!(loaded.near > 0.0, "{f:?}: near {}", loaded.near);
+        }
+    }
+}
