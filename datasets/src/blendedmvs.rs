@@ -449,6 +449,8 @@ fn load_nsvf(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetError>
         .iter()
         .any(|p| split_prefix(stem(p)).is_some_and(|(s, _)| s == 2));
     let test_prefix = if has_test { 2 } else { 1 };
+    // Validation views are not loaded when a test split exists.
+    images.retain(|p| split_prefix(stem(p)).is_some_and(|(s, _)| s == 0 || s == test_prefix));
     let views: Vec<(u8, View)> = images
         .par_iter()
         .map(|img_path| {

@@ -614,3 +614,166 @@ fn assert_same_views_up_to_frame(original: &Scene, loaded: &Scene, f: Format) {
         }
     }
 }
+
+/// NSVF: `1_` (validation) views are skipped when `2_` (test) views exist, and are the
+/// held-out views otherwise.
+#[test]
+fn nsvf_split_prefixes() {
+    let s = scene(Rig::ObjectCentric);
+    let dir = temp_dir("nsvf-split");
+    Format::Nsvf.write(&s, &dir).unwrap();
+    let test_names: Vec<String> = s.test.iter().map(|&i| s.views[i].name.clone()).collect();
+    let copy = |from: &str, to: &str| {
+        std::fs::copy(
+            dir.join(format!("rgb/{from}.png")),
+            dir.join(format!("rgb/{to}.png")),
+        )
+        .unwrap();
+        std::fs::copy(
+            dir.join(format!("pose/{from}.txt")),
+            dir.join(format!("pose/{to}.txt")),
+        )
+        .unwrap();
+    };
+    copy("0_view_003", "1_val_003");
+    let loaded = Format::Nsvf.open_raw(&dir, None).unwrap();
+    assert_eq!(loaded.views.len(), s.views.len());
+    assert!(loaded.views.iter().all(|v| v.name != "val_003"));
+    // Without test views, validation views are held out.
+    for name in &test_names {
+        for (sub, ext) in [("rgb", "png"), ("pose", "txt"), ("masks", "png")] {
+            let from = dir.join(format!("{sub}/2_{name}.{ext}"));
+            std::fs::rename(&from, dir.join(format!("{sub}/1_{name}.{ext}"))).unwrap();
+        }
+    }
+    let loaded = Format::Nsvf.open_raw(&dir, None).unwrap();
+    let mut held: Vec<&str> = loaded
+        .test
+        .iter()
+        .map(|&i| loaded.views[i].name.as_str())
+        .collect();
+    held.sort();
+    let mut want: Vec<&str> = test_names
+        .iter()
+        .map(|n| n.as_str())
+        .chain(["val_003"])
+        .collect();
+    want.sort();
+    assert_eq!(held, want);
+    std::fs::remove_dir_all(dir).ok();
+}
+
+/// Off-centre principal points and non-square pixels survive every layout that can store them
+/// (LLFF and Blender store one focal length and a centred principal point, and refuse).
+#[test]
+fn general_intrinsics_survive_where_the_layout_holds_them() {
+    let mut s = scene(Rig::ObjectCentric);
+    for v in &mut s.views {
+        let c = &mut v.camera;
+        c.fy = 1.1 * c.fx;
+        c.cx = 0.4 * c.width as f32 + 0.25;
+        c.cy = 0.55 * c.height as f32 - 0.125;
+    }
+    let dir = temp_dir("intr");
+    for f in Format::ALL {
+        let d = dir.join(f.name());
+        if matches!(f, Format::Llff | Format::Blender) {
+            let err = f.write(&s, &d).unwrap_err().to_string();
+            assert!(err.contains("principal point"), "{f:?}: {err}");
+            continue;
+        }
+        f.write(&s, &d).unwrap();
+        let loaded = f
+            .open_raw(&d, Some(ROOM))
+            .unwrap_or_else(|e| panic!("{f:?}: {e}"));
+        assert_same_views(&s, &loaded, f.name());
+    }
+    // Both CO3D intrinsics formats.
+    let d = dir.join("co3d-bounds");
+    sos_datasets::write_co3d(&s, &d, CO3D_CATEGORY, CO3D_SEQUENCE, false).unwrap();
+    let root = d.join(CO3D_CATEGORY);
+    let loaded = load_co3d(
+        &Co3dConfig {
+            path: root.clone(),
+            ..Default::default()
+        },
+        &root,
+    )
+    .unwrap();
+    assert_same_views(&s, &loaded, "co3d ndc_norm_image_bounds");
+    std::fs::remove_dir_all(dir).ok();
+}
+
+/// Hand-written cameras in each file convention, checked against where known world points
+/// must appear (independent of the writers, which share the loaders' conventions).
+#[test]
+fn file_conventions_match_hand_written_cameras() {
+    use sos_datasets::pose::{from_world_to_camera, rotation_from_quaternion, to_camera_general};
+    use sos_datasets::{co3d, tanks_temples};
+    // Every camera sits at world (0, 0, -5) looking along world +Z; image 100x80.
+    let check = |what: &str, cam: sos_core::camera::Camera, right: [f32; 3], down: [f32; 3]| {
+        let c = cam.project([0.0, 0.0, 0.0]).unwrap();
+        assert!(
+            (c[0] - cam.cx).abs() < 1e-4 && (c[1] - cam.cy).abs() < 1e-4,
+            "{what}: {c:?}"
+        );
+        let r = cam.project(right).unwrap();
+        assert!(
+            r[0] > c[0] + 1.0 && (r[1] - c[1]).abs() < 1e-4,
+            "{what}: {right:?} → {r:?}"
+        );
+        let d = cam.project(down).unwrap();
+        assert!(
+            d[1] > c[1] + 1.0 && (d[0] - c[0]).abs() < 1e-4,
+            "{what}: {down:?} → {d:?}"
+        );
+    };
+    // OpenCV world-to-camera (COLMAP, BlendedMVS): identity rotation, t = (0, 0, 5): camera x
+    // is world +X (right), camera y world +Y (down).
+    let p = from_world_to_camera(
+        &rotation_from_quaternion([1.0, 0.0, 0.0, 0.0]),
+        [0.0, 0.0, 5.0],
+    )
+    .unwrap();
+    check(
+        "opencv w2c",
+        to_camera_general(&p, 100, 80, 50.0, 50.0, 50.0, 40.0),
+        [1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+    );
+    // NeRF++ / NSVF camera-to-world, OpenCV axes.
+    let p =
+        tanks_temples::parse_c2w_opencv(Path::new("p.txt"), "1 0 0 0\n0 1 0 0\n0 0 1 -5\n0 0 0 1")
+            .unwrap();
+    check(
+        "opencv c2w",
+        to_camera_general(&p, 100, 80, 50.0, 50.0, 50.0, 40.0),
+        [1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+    );
+    // PyTorch3D: X_cam = X_world·R + T with R = I, T = (0, 0, 5): +X left, +Y up, +Z forward,
+    // so world +X appears on the left and world −Y below the centre.
+    let json = r#"[{"sequence_name": "s", "frame_number": 0,
+        "image": {"path": "s/images/f.jpg", "size": [80, 100]},
+        "viewpoint": {"R": [[1,0,0],[0,1,0],[0,0,1]], "T": [0,0,5],
+                      "focal_length": [1.25, 1.25], "principal_point": [0.1, -0.05],
+                      "intrinsics_format": "ndc_isotropic"}}]"#;
+    let frames: Vec<co3d::FrameAnnotation> = serde_json::from_str(json).unwrap();
+    let vp = frames[0].viewpoint.as_ref().unwrap();
+    let k = co3d::intrinsics_from_ndc(vp, frames[0].image.size).unwrap();
+    // Isotropic: the shorter side (80 px) spans NDC [−1, 1], so s = 40 px; NDC +X is left.
+    assert_eq!(
+        (k.fx, k.fy, k.cx, k.cy),
+        (50.0, 50.0, 50.0 - 4.0, 40.0 + 2.0)
+    );
+    let p = co3d::pose_from_pytorch3d(&vp.r, vp.t).unwrap();
+    check(
+        "pytorch3d",
+        to_camera_general(&p, 100, 80, k.fx, k.fy, k.cx, k.cy),
+        [-1.0, 0.0, 0.0],
+        [0.0, -1.0, 0.0],
+    );
+    // A point on PyTorch3D's principal point lands on the pixel principal point: NDC
+    // (px, py) = (0.1, −0.05) is left of and below the image centre.
+    assert!(k.cx < 50.0 && k.cy > 40.0);
+}
