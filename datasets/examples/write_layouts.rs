@@ -1,11 +1,11 @@
 //! Writes the synthetic scene in every dataset layout, with masks, and reopens each to check it:
-//! `cargo run --release -p sos-datasets --example write_layouts -- [OUT_DIR] [RIG]`.
+//! `cargo run --release -p sos-datasets --example write_layouts -- [OUT_DIR] [RIG] [WxH] [VIEWS]`.
 //!
 //! `OUT_DIR` defaults to `runs/layouts` (where `configs/synthetic_<format>.toml` look), `RIG`
-//! to `object-centric` (or `forward-facing`, which the NSVF layout cannot hold). The scene is
-//! the default `synthetic` one (400x300, 40 views, every 8th held out, seed 0), as in
+//! to `object-centric` (or `forward-facing`, which the NSVF layout cannot hold). By default the
+//! scene is the default `synthetic` one (400x300, 40 views, every 8th held out, seed 0), as in
 //! `configs/synthetic.toml`, so a run on any layout can be compared with a run on the
-//! generator itself.
+//! generator itself; `WxH` and `VIEWS` make a smaller one for quick checks.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -24,10 +24,32 @@ fn main() -> ExitCode {
             return ExitCode::from(2);
         }
     };
-    let scene = generate(&SyntheticConfig {
+    let mut cfg = SyntheticConfig {
         rig,
         ..Default::default()
-    });
+    };
+    if let Some(size) = args.next() {
+        let parsed = size
+            .split_once('x')
+            .and_then(|(w, h)| Some((w.parse().ok()?, h.parse().ok()?)));
+        let Some((w, h)) = parsed else {
+            eprintln!("error: size {size:?} must read WIDTHxHEIGHT, e.g. 80x60");
+            return ExitCode::from(2);
+        };
+        (cfg.width, cfg.height) = (w, h);
+    }
+    if let Some(views) = args.next() {
+        let Ok(v) = views.parse() else {
+            eprintln!("error: VIEWS {views:?} must be a number");
+            return ExitCode::from(2);
+        };
+        cfg.views = v;
+    }
+    if let Err(e) = cfg.check() {
+        eprintln!("error: {e}");
+        return ExitCode::from(2);
+    }
+    let scene = generate(&cfg);
     eprintln!(
         "{}: {} views ({} held out), extent {:?}, near {:.4}",
         scene.name,

@@ -114,8 +114,12 @@ pub fn parse_cam_txt(path: &Path, text: &str) -> Result<MvsCam, DatasetError> {
             Some(t) if t.eq_ignore_ascii_case(word) => Ok(()),
             other => Err(invalid(
                 path,
-                format!("expected the keyword `{word}` as token {}, found {other:?}; the file must read \
-                         `extrinsic` + 4x4, `intrinsic` + 3x3, then the depth range", i + 1),
+                format!(
+                    "expected the keyword `{word}` as token {}, found {}; the file must read \
+                     `extrinsic` + 4x4, `intrinsic` + 3x3, then the depth range",
+                    i + 1,
+                    other.map_or("the end of the file".to_string(), |t| format!("{t:?}"))
+                ),
             )),
         }
     };
