@@ -537,7 +537,7 @@ pub fn load_colmap(cfg: &ColmapConfig, root: &Path) -> Result<Scene, DatasetErro
                 ));
             }
             let qn: f64 = im.qvec.iter().map(|v| v * v).sum::<f64>().sqrt();
-            if !(qn > 1e-6) {
+            if qn.is_nan() || qn <= 1e-6 {
                 return Err(invalid(
                     &images_file,
                     format!("{what}: zero quaternion; fix or drop this image"),

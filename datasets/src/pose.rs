@@ -254,7 +254,7 @@ pub fn spherify(poses: &[Pose], n: usize) -> Option<Spherified> {
     }
     // Parallel axes leave A singular up to rounding; demand a well-conditioned system.
     let det = det3(&a_mean);
-    if !(det.abs() > 1e-6) {
+    if det.is_nan() || det.abs() <= 1e-6 {
         return None;
     }
     let inv = invert3(&a_mean)?;

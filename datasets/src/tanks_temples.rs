@@ -267,7 +267,7 @@ pub fn load_tanks_temples(cfg: &TanksTemplesConfig, root: &Path) -> Result<Scene
         Normalize::Auto => !inside,
     };
     let extent = if normalise {
-        if !(radius > 0.0) {
+        if radius.is_nan() || radius <= 0.0 {
             return Err(invalid(
                 &train_files.dir.join("pose"),
                 "all training cameras sit at one point; normalisation needs distinct camera centres",

@@ -4,7 +4,7 @@
 //! noise. The property: the result is `Ok` or a typed error, never a panic (proptest catches
 //! panics and shrinks them to a minimal mutation).
 //!
-//! Case counts: `SOS_FUZZ_CASES` (default 2000) per parser test and an eighth of it per
+//! Case counts: `SOS_FUZZ_CASES` (default 1000) per parser test and an eighth of it per
 //! loader test; each test prints how many cases it tried. `datasets/FUZZING.md` records runs.
 
 use std::io::{Read, Write};
@@ -22,7 +22,7 @@ fn cases() -> u32 {
     std::env::var("SOS_FUZZ_CASES")
         .ok()
         .and_then(|v| v.parse().ok())
-        .unwrap_or(2000)
+        .unwrap_or(1000)
 }
 
 fn runner(cases: u32) -> TestRunner {
