@@ -10,7 +10,6 @@
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::OnceLock;
 
 use proptest::prelude::*;
 use proptest::test_runner::{Config, TestRunner};
@@ -33,25 +32,23 @@ fn runner(cases: u32) -> TestRunner {
     })
 }
 
-/// The generator's small object-centric scene, written once in every layout.
-fn seed_dir() -> &'static Path {
-    static DIR: OnceLock<PathBuf> = OnceLock::new();
-    DIR.get_or_init(|| {
-        let dir = std::env::temp_dir().join(format!("sos-fuzz-seed-{}", std::process::id()));
-        std::fs::remove_dir_all(&dir).ok();
-        let scene = generate(&SyntheticConfig {
-            rig: Rig::ObjectCentric,
-            width: 24,
-            height: 16,
-            views: 6,
-            hold_out_every: 3,
-            ..Default::default()
-        });
-        for f in Format::ALL {
-            f.write(&scene, &dir.join(f.name())).unwrap();
-        }
-        dir
-    })
+/// The generator's small object-centric scene written in every layout to a folder of the test
+/// `name` (removed by the test).
+fn seed_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("sos-fuzz-seed-{}-{name}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    let scene = generate(&SyntheticConfig {
+        rig: Rig::ObjectCentric,
+        width: 24,
+        height: 16,
+        views: 6,
+        hold_out_every: 3,
+        ..Default::default()
+    });
+    for f in Format::ALL {
+        f.write(&scene, &dir.join(f.name())).unwrap();
+    }
+    dir
 }
 
 /// Every file below `dir`, sorted.
@@ -264,9 +261,9 @@ fn parse(path: &Path, bytes: &[u8]) -> Option<bool> {
 }
 
 /// One seed file per parser: (path, bytes, whether it is gzip to be mutated inside).
-fn parser_seeds() -> Vec<(PathBuf, Vec<u8>)> {
+fn parser_seeds(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
     let mut seeds: Vec<(PathBuf, Vec<u8>)> = Vec::new();
-    for f in files_below(seed_dir()) {
+    for f in files_below(dir) {
         let bytes = std::fs::read(&f).unwrap();
         if parse(&f, &bytes).is_some() {
             // The seeds themselves parse.
@@ -301,7 +298,8 @@ fn parser_seeds() -> Vec<(PathBuf, Vec<u8>)> {
 
 #[test]
 fn parsers_never_panic_on_mutated_seeds() {
-    let seeds = parser_seeds();
+    let dir = seed_dir("parsers");
+    let seeds = parser_seeds(&dir);
     assert!(seeds.len() >= 12, "{} seed files", seeds.len());
     let tried = AtomicUsize::new(0);
     let accepted = AtomicUsize::new(0);
@@ -322,6 +320,7 @@ fn parsers_never_panic_on_mutated_seeds() {
             Ok(())
         })
         .unwrap();
+    std::fs::remove_dir_all(&dir).ok();
     println!(
         "fuzz parsers: {} cases ({} mutated files over {} seeds), {} still parsed",
         n,
@@ -345,8 +344,9 @@ fn loaders_never_panic_on_mutated_layouts() {
     let n = (cases() / 8).max(16);
     let work = std::env::temp_dir().join(format!("sos-fuzz-work-{}", std::process::id()));
     let mut summary = Vec::new();
+    let seeds = seed_dir("loaders");
     for f in Format::ALL {
-        let seed = seed_dir().join(f.name());
+        let seed = seeds.join(f.name());
         f.open_raw(&seed, None).unwrap();
         let files = files_below(&seed);
         let (tried, failed) = (AtomicUsize::new(0), AtomicUsize::new(0));
@@ -384,5 +384,6 @@ fn loaders_never_panic_on_mutated_layouts() {
         ));
     }
     std::fs::remove_dir_all(&work).ok();
+    std::fs::remove_dir_all(&seeds).ok();
     println!("fuzz loaders: {}", summary.join("; "));
 }

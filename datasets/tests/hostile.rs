@@ -237,6 +237,7 @@ fn nan_and_singular_poses() {
     b[12..20].copy_from_slice(&f64::NAN.to_le_bytes());
     std::fs::write(&p, &b).unwrap();
     expect_err(Format::ColmapBin, &dir, "NaN pose", &["images.bin", "NaN"]);
+    std::fs::remove_dir_all(&dir).ok();
     // CO3D: a singular R; a NaN written as Python's json does (not valid JSON).
     let dir = fresh(Format::Co3d, &s, "singular");
     let fa = dir.join(CO3D_CATEGORY).join("frame_annotations.jgz");
@@ -261,6 +262,7 @@ fn nan_and_singular_poses() {
         "NaN in JSON",
         &["frame_annotations.jgz", "malformed"],
     );
+    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
@@ -403,6 +405,7 @@ fn malformed_camera_files() {
         &["sequence_annotations.jgz", "missing"],
     );
     assert!(matches!(err, DatasetError::Missing { .. }));
+    std::fs::remove_dir_all(&dir).ok();
     let dir = fresh(Format::ColmapBin, &s, "missing-images-bin");
     std::fs::remove_file(dir.join("sparse/0/images.bin")).unwrap();
     expect_err(
@@ -411,6 +414,7 @@ fn malformed_camera_files() {
         "no images.bin",
         &["images.bin", "missing"],
     );
+    std::fs::remove_dir_all(&dir).ok();
 }
 
 /// The path the CLI takes: a `[scene]` table parsed into the registered kind, then opened.
