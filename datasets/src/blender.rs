@@ -291,7 +291,8 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
         .unwrap_or("blender")
         .to_string();
     let centre = [0, 1, 2].map(|k| 0.5 * (cfg.aabb[0][k] + cfg.aabb[1][k]));
-    let render_path = orbit_path(&views[..n_train], centre, 40);
+    let train_cams: Vec<&Camera> = views[..n_train].iter().map(|v| &v.camera).collect();
+    let render_path = orbit_path(&train_cams, centre, 40);
     Ok(Scene {
         name,
         train: (0..n_train).collect(),
@@ -309,16 +310,18 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
 /// A circle of `n` cameras around `centre` at the training cameras' mean distance and height
 /// (along their mean up axis), like the 40-view circle of NeRF's Blender loader; empty when the
 /// cameras sit on the axis.
-fn orbit_path(train: &[View], centre: Vec3, n: usize) -> Vec<Camera> {
-    let first = &train[0].camera;
+pub(crate) fn orbit_path(train: &[&Camera], centre: Vec3, n: usize) -> Vec<Camera> {
+    let Some(first) = train.first() else {
+        return Vec::new();
+    };
     let mut up = [0.0; 3];
     let (mut dist, mut height) = (0.0, 0.0);
-    for v in train {
-        up = add(up, v.camera.rotate([0.0, 1.0, 0.0]));
+    for c in train {
+        up = add(up, c.rotate([0.0, 1.0, 0.0]));
     }
     let up = normalize(up);
-    for v in train {
-        let d = sub(v.camera.origin(), centre);
+    for c in train {
+        let d = sub(c.origin(), centre);
         dist += dot(d, d).sqrt() / train.len() as f32;
         height += dot(d, up) / train.len() as f32;
     }
@@ -337,6 +340,22 @@ fn orbit_path(train: &[View], centre: Vec3, n: usize) -> Vec<Camera> {
             Camera::look_at(eye, centre, up, first.width, first.height, first.fx)
         })
         .collect()
+}
+
+/// The 40-view orbit of [`orbit_path`] around the centre of a bounded or unbounded extent
+/// (empty for forward-facing extents, whose render path is the LLFF spiral).
+pub(crate) fn orbit_path_around(
+    views: &[View],
+    train: &[usize],
+    extent: &SceneExtent,
+) -> Vec<Camera> {
+    let centre = match *extent {
+        SceneExtent::Bounded { min, max } => [0, 1, 2].map(|k| 0.5 * (min[k] + max[k])),
+        SceneExtent::Unbounded { center, .. } => center,
+        SceneExtent::ForwardFacing { .. } => return Vec::new(),
+    };
+    let cams: Vec<&Camera> = train.iter().map(|&i| &views[i].camera).collect();
+    orbit_path(&cams, centre, 40)
 }
 
 fn scale3(v: Vec3, s: f32) -> Vec3 {

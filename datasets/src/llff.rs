@@ -12,7 +12,10 @@
 //! images and focal divided by the factor; translations and bounds scaled by
 //! `1 / (bd_factor · min bound)`; poses recentred by the inverse of LLFF's average pose; test
 //! views every `hold_out_every`-th from 0; render path the reference's 120-view spiral.
-//! `spherify = true` is not supported yet and is reported as an error.
+//! `spherify = true` (360° captures) applies the reference's `spherify_poses` after recentring:
+//! the cameras are expressed around the point their viewing axes pass closest to, scaled to RMS
+//! distance 1 from it, the extent is `Unbounded` (unit sphere) and the render path is the
+//! reference's circle of cameras.
 
 use std::path::{Path, PathBuf};
 
@@ -46,7 +49,7 @@ pub struct LlffConfig {
     pub recenter: bool,
     /// Scale so the nearest bound becomes `1 / bd_factor` (default 0.75); 0 disables scaling.
     pub bd_factor: f64,
-    /// Spherical pose normalisation of 360° captures; not supported yet (must stay false).
+    /// Spherical pose normalisation of 360° captures, as the reference (default false).
     pub spherify: bool,
     /// Number of cameras on the spiral render path (default 120).
     pub render_path_views: usize,
@@ -221,14 +224,76 @@ fn image_source(cfg: &LlffConfig, root: &Path, hwf: [f64; 3]) -> Result<ImageSou
     })
 }
 
+/// Poses and bounds of an LLFF capture after the reference's processing.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LlffGeometry {
+    /// Camera-to-world poses (OpenGL axes): scaled, recentred and spherified as configured.
+    pub poses: Vec<Pose>,
+    /// Full-resolution (height, width, focal) of the first row.
+    pub hwf: [f64; 3],
+    /// Smallest near and largest far bound, in the processed frame.
+    pub bounds: [f64; 2],
+    /// The circle of cameras of `spherify` (its render path), when spherified.
+    pub sphere_path: Option<Vec<Pose>>,
+}
+
+/// Reads `poses_bounds.npy` and processes it as the reference `load_llff_data` does: axes to
+/// (right, up, back), translations and bounds scaled by `1 / (bd_factor · min near)`,
+/// recentred on the average pose, then (with `spherify`) expressed around the point all
+/// viewing axes pass closest to and scaled so the cameras' RMS distance to it is 1.
+pub fn read_llff_geometry(cfg: &LlffConfig, npy_path: &Path) -> Result<LlffGeometry, DatasetError> {
+    let arr = read_npy(npy_path)?;
+    let rows = parse_rows(npy_path, &arr.shape, &arr.data)?;
+    let min_bound = rows
+        .iter()
+        .map(|r| r.bounds[0])
+        .fold(f64::INFINITY, f64::min);
+    let max_bound = rows.iter().map(|r| r.bounds[1]).fold(0.0, f64::max);
+    let sc = if cfg.bd_factor > 0.0 {
+        1.0 / (cfg.bd_factor * min_bound)
+    } else {
+        1.0
+    };
+    let mut poses: Vec<Pose> = rows.iter().map(|r| r.pose).collect();
+    for (i, p) in poses.iter().enumerate() {
+        let r = [0, 1, 2].map(|k| [p[k][0], p[k][1], p[k][2]]);
+        if let Some(problem) = pose::rotation_problem(&r) {
+            return Err(invalid(
+                npy_path,
+                format!("row {i}: {problem}; fix or drop this camera"),
+            ));
+        }
+    }
+    for p in &mut poses {
+        (0..3).for_each(|r| p[r][3] *= sc);
+    }
+    if cfg.recenter {
+        poses = pose::recenter(&poses).0;
+    }
+    let mut bounds = [min_bound * sc, max_bound * sc];
+    let mut sphere_path = None;
+    if cfg.spherify {
+        let s = pose::spherify(&poses, cfg.render_path_views).ok_or_else(|| {
+            invalid(
+                npy_path,
+                "spherify needs cameras whose viewing axes meet (a 360° capture); these are \
+                 (nearly) parallel: set `spherify = false`",
+            )
+        })?;
+        poses = s.poses;
+        bounds = bounds.map(|b| b * s.scale);
+        sphere_path = Some(s.path);
+    }
+    Ok(LlffGeometry {
+        poses,
+        hwf: rows[0].hwf,
+        bounds,
+        sphere_path,
+    })
+}
+
 /// Loads an LLFF scene from folder `root` (the config's `path` already resolved).
 pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
-    if cfg.spherify {
-        return Err(invalid(
-            root,
-            "config key `spherify = true` is not supported yet; set it to false",
-        ));
-    }
     if !root.is_dir() {
         return Err(DatasetError::Missing {
             path: root.to_path_buf(),
@@ -237,18 +302,17 @@ pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
         });
     }
     let npy_path = root.join("poses_bounds.npy");
-    let arr = read_npy(&npy_path)?;
-    let rows = parse_rows(&npy_path, &arr.shape, &arr.data)?;
-    let source = image_source(cfg, root, rows[0].hwf)?;
+    let geo = read_llff_geometry(cfg, &npy_path)?;
+    let source = image_source(cfg, root, geo.hwf)?;
     let files = list_images(&source.dir)?;
-    if files.len() != rows.len() {
+    if files.len() != geo.poses.len() {
         return Err(invalid(
             &source.dir,
             format!(
                 "found {} images but {} has {} poses; the counts must match",
                 files.len(),
                 npy_path.display(),
-                rows.len()
+                geo.poses.len()
             ),
         ));
     }
@@ -257,6 +321,19 @@ pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
         .map(|f| {
             let img = RgbImage::load(f)?;
             Ok(match source.resize_to {
+                // Only downscaling: a size above the file's comes from a wrong H, W in the poses.
+                Some((w, h)) if w > img.width || h > img.height => {
+                    return Err(invalid(
+                        f,
+                        format!(
+                            "image is {}x{}, smaller than the {w}x{h} that {} implies for this \
+                             factor; put full-resolution images in images/ or fix H, W there",
+                            img.width,
+                            img.height,
+                            npy_path.display()
+                        ),
+                    ))
+                }
                 Some((w, h)) => img.resized(w, h),
                 None => img,
             })
@@ -276,31 +353,13 @@ pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
             ));
         }
     }
-
-    // Scale so the nearest content sits at 1 / bd_factor.
-    let min_bound = rows
-        .iter()
-        .map(|r| r.bounds[0])
-        .fold(f64::INFINITY, f64::min);
-    let max_bound = rows.iter().map(|r| r.bounds[1]).fold(0.0, f64::max);
-    let sc = if cfg.bd_factor > 0.0 {
-        1.0 / (cfg.bd_factor * min_bound)
-    } else {
-        1.0
-    };
-    let mut poses: Vec<Pose> = rows.iter().map(|r| r.pose).collect();
-    for p in &mut poses {
-        (0..3).for_each(|r| p[r][3] *= sc);
-    }
-    if cfg.recenter {
-        poses = pose::recenter(&poses).0;
-    }
-    let focal = rows[0].hwf[2] / source.factor;
-    let (near, far) = (0.9 * min_bound * sc, max_bound * sc);
+    let poses = &geo.poses;
+    let focal = geo.hwf[2] / source.factor;
+    let (near, far) = (0.9 * geo.bounds[0], geo.bounds[1]);
 
     let masks = MaskDir::find(root);
     let mut views = Vec::with_capacity(files.len());
-    for (i, ((file, image), p)) in files.iter().zip(images).zip(&poses).enumerate() {
+    for (i, ((file, image), p)) in files.iter().zip(images).zip(poses).enumerate() {
         let camera = pose::to_camera(p, width as u32, height as u32, focal);
         camera.validate().map_err(|e| {
             invalid(
@@ -324,20 +383,31 @@ pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
             "no training views left; raise `hold_out_every` or set it to 0",
         ));
     }
-    let render_path = pose::llff_spiral(
-        &poses,
-        min_bound * sc,
-        max_bound * sc,
-        cfg.render_path_views,
-    )
-    .iter()
-    .map(|p| pose::to_camera(p, width as u32, height as u32, focal))
-    .collect();
+    let to_cam = |p: &Pose| pose::to_camera(p, width as u32, height as u32, focal);
     let name = root
         .file_name()
         .and_then(|n| n.to_str())
         .unwrap_or("llff")
         .to_string();
+    if let Some(path) = &geo.sphere_path {
+        // Spherified 360° captures: cameras around the origin at RMS distance 1.
+        return Ok(Scene {
+            name,
+            views,
+            train,
+            test,
+            extent: SceneExtent::Unbounded {
+                center: [0.0; 3],
+                radius: 1.0,
+            },
+            near: near as f32,
+            render_path: path.iter().map(to_cam).collect(),
+        });
+    }
+    let render_path = pose::llff_spiral(poses, geo.bounds[0], geo.bounds[1], cfg.render_path_views)
+        .iter()
+        .map(to_cam)
+        .collect();
     Ok(Scene {
         name,
         views,

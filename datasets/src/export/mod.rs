@@ -1,5 +1,16 @@
-//! Writes a [`Scene`] to disk in the LLFF or the Blender layout, so generated scenes can be
-//! read by other NeRF code (and by this crate's loaders, which the tests use for round trips).
+//! Writes a [`Scene`] to disk in every layout the loaders read (LLFF, Blender, COLMAP,
+//! BlendedMVS original and NSVF, CO3Dv2, Tanks and Temples / NeRF++), with masks, so generated
+//! scenes can be read by other NeRF code and by this crate's loaders (the round-trip tests).
+
+mod blendedmvs;
+mod co3d;
+mod colmap;
+mod tanks_temples;
+
+pub use blendedmvs::{write_blendedmvs, write_nsvf};
+pub use co3d::write_co3d;
+pub use colmap::write_colmap;
+pub use tanks_temples::write_tanks_temples;
 
 use std::path::Path;
 
@@ -9,7 +20,7 @@ use sos_core::scene::{Scene, SceneExtent};
 
 use crate::npy::write_npy;
 
-fn invalid(path: &Path, message: impl Into<String>) -> DatasetError {
+pub(crate) fn invalid(path: &Path, message: impl Into<String>) -> DatasetError {
     DatasetError::Invalid {
         path: path.to_path_buf(),
         message: message.into(),
@@ -17,7 +28,11 @@ fn invalid(path: &Path, message: impl Into<String>) -> DatasetError {
 }
 
 /// Both layouts can only express a centred principal point and square pixels.
-fn check_simple_intrinsics(dir: &Path, cam: &Camera, name: &str) -> Result<(), DatasetError> {
+pub(crate) fn check_simple_intrinsics(
+    dir: &Path,
+    cam: &Camera,
+    name: &str,
+) -> Result<(), DatasetError> {
     let centred = (cam.cx - cam.width as f32 / 2.0).abs() < 1e-3
         && (cam.cy - cam.height as f32 / 2.0).abs() < 1e-3;
     if !centred || (cam.fx - cam.fy).abs() > 1e-3 * cam.fx {
@@ -33,7 +48,7 @@ fn check_simple_intrinsics(dir: &Path, cam: &Camera, name: &str) -> Result<(), D
 
 /// File stems for the views: their names when those are unique, path-safe and already in
 /// sorted order (so sorting the files restores the view order), else the index prefixed.
-fn file_stems(scene: &Scene) -> Vec<String> {
+pub(crate) fn file_stems(scene: &Scene) -> Vec<String> {
     let names: Vec<&str> = scene.views.iter().map(|v| v.name.as_str()).collect();
     let safe = names
         .iter()
@@ -51,7 +66,7 @@ fn file_stems(scene: &Scene) -> Vec<String> {
 }
 
 /// Depth bounds of the content seen by `cam`, derived from the scene extent.
-fn view_bounds(extent: &SceneExtent, cam: &Camera) -> [f64; 2] {
+pub(crate) fn view_bounds(extent: &SceneExtent, cam: &Camera) -> [f64; 2] {
     let (o, f) = (cam.origin(), cam.forward());
     let (lo, hi) = match *extent {
         SceneExtent::ForwardFacing { near, far, .. } => (near, far),
