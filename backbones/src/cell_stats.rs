@@ -9,7 +9,7 @@
 //! | 3                  | log standard deviation of the three opponent channels          |
 //! | `orientation_bins` | gradient-orientation histogram (unsigned, magnitude-weighted)  |
 //! | 1                  | log mean gradient magnitude (texture energy)                   |
-//! | 1                  | border distinctness (below), squashed, times `saliency_weight` |
+//! | 1                  | saliency (below), centred, times `saliency_weight`             |
 //!
 //! Every channel is centred and scaled with FIXED constants (typical values of natural
 //! images), never with per-image statistics, so the same surface gets the same features in
@@ -71,9 +71,9 @@ pub struct CellStatsConfig {
     pub energy_weight: f32,
     /// Weight of the saliency channel (objectness; 0 turns it off).
     pub saliency_weight: f32,
-    /// How the border distance becomes the saliency channel: `"fixed"` squashes it with a
-    /// fixed scale (a patch of background alone has no salient cell); `"per-image"` uses the
-    /// min–max normalised saliency map (every patch has a most salient cell).
+    /// How the border distance becomes the saliency channel: `"per-image"` (default) uses the
+    /// min–max normalised saliency map (every patch has a most salient cell); `"fixed"`
+    /// squashes it with a fixed scale (a patch of background alone has no salient cell).
     pub saliency_scale: SaliencyScale,
 }
 
@@ -97,7 +97,9 @@ impl Default for CellStatsConfig {
             orientation_weight: 1.0,
             energy_weight: 0.5,
             saliency_weight: 5.0,
-            saliency_scale: SaliencyScale::Fixed,
+            // Measured on the synthetic scene's full pipeline (benchmarks/RESULTS.md):
+            // per-image mIoU 0.77 against 0.67 for fixed, same checkpoint and settings.
+            saliency_scale: SaliencyScale::PerImage,
         }
     }
 }
@@ -591,18 +593,22 @@ mod tests {
             })
         };
         let channel = |map: &FeatureMap, r: usize, c: usize| *cell_vec(map, r, c).last().unwrap();
-        let with = extractor().extract_one(&scene(true, 5));
+        let fixed = CellStats::new(CellStatsConfig { saliency_scale: SaliencyScale::Fixed, ..Default::default() }).unwrap();
+        let with = fixed.extract_one(&scene(true, 5));
         let (centre, corner) = (channel(&with, 4, 5), channel(&with, 0, 0));
         eprintln!("saliency channel: centre {centre:.3}, corner {corner:.3}");
         assert!(centre > 0.0 && corner < -1.0, "centre {centre}, corner {corner}");
         // Fixed squashing, not per-image normalisation: a view of background alone has no
         // salient cell, although its normalised saliency map still spans [0, 1].
-        let without = extractor().extract_one(&scene(false, 6));
+        let without = fixed.extract_one(&scene(false, 6));
         let most = (0..with.height * with.width)
             .map(|i| channel(&without, i / without.width, i % without.width))
             .fold(f32::NEG_INFINITY, f32::max);
         assert!(most < -1.0, "most salient background cell {most}");
-        assert!(without.saliency.unwrap().iter().any(|&v| v == 1.0));
+        assert!(without.saliency.as_ref().unwrap().iter().any(|&v| v == 1.0));
+        // Per image (the default), the object's cells are the most salient of their view.
+        let per_image = extractor().extract_one(&scene(true, 5));
+        assert!(channel(&per_image, 4, 5) > 1.5 && channel(&per_image, 0, 0) < -1.5);
         // The weight scales the channel; 0 turns it off.
         let off = statistics_only().extract_one(&scene(true, 5));
         assert_eq!(channel(&off, 4, 5), 0.0);

@@ -157,7 +157,7 @@ pub struct MaskConfig {
     pub softmax: bool,
     /// Scale each pixel's logits to unit length before clustering. The contrastive losses
     /// compare logits by direction only (cosine, or the kernel on normalised logits), so their
-    /// length carries no trained meaning; the reference clusters raw logits.
+    /// length carries no trained meaning; the reference clusters raw logits (`false`).
     pub normalize: bool,
     /// Rule that names the foreground cluster.
     pub foreground: ForegroundRule,

@@ -83,7 +83,7 @@ pub enum RunError {
     #[error(transparent)]
     Config(#[from] ConfigError),
     /// The scene could not be loaded.
-    #[error("scene: {0}")]
+    #[error("cannot load the scene")]
     Dataset(#[from] crate::plugin::dataset::DatasetError),
     /// A plugin could not be built.
     #[error("{0}")]
