@@ -275,3 +275,26 @@ fn compare_scores_a_mask_against_a_resized_reference() {
     assert_eq!(missing.status.code(), Some(2));
     assert!(text(&missing.stderr).contains("nowhere.png"), "{}", text(&missing.stderr));
 }
+
+#[test]
+fn a_corrupt_dataset_file_exits_2_naming_it() {
+    use sos_plugins::datasets::{generate, Format, SyntheticConfig};
+    let dir = temp_dir("corrupt-colmap");
+    let scene = generate(&SyntheticConfig { width: 40, height: 30, views: 6, hold_out_every: 3, render_path_views: 2, ..Default::default() });
+    let data = dir.join("scene");
+    Format::ColmapBin.write(&scene, &data).unwrap();
+    let images_bin = data.join("sparse/0/images.bin");
+    let bytes = std::fs::read(&images_bin).unwrap();
+    std::fs::write(&images_bin, &bytes[..bytes.len() / 2]).unwrap();
+    let config = tiny_config("corrupt", 1, 0).replace(
+        "[scene]\nkind = \"synthetic\"\nwidth = 80\nheight = 60\nviews = 10\nhold_out_every = 5\nrender_path_views = 2\n",
+        "[scene]\nkind = \"colmap\"\npath = \"scene\"\n",
+    );
+    assert!(config.contains("kind = \"colmap\""), "the scene section was not replaced");
+    std::fs::write(dir.join("corrupt.toml"), config).unwrap();
+    let out = sos(&["train", "corrupt.toml"], &dir);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("images.bin"), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}
