@@ -95,15 +95,13 @@ fn resource(message: String) -> BuildError {
 
 /// Where to get the official weights, for error messages.
 fn download_hint(arch: Arch) -> String {
+    let shown = if arch == Arch::Auto { Arch::Vits16 } else { arch };
     format!(
-        "the official DINO backbone weights are published by the DINO authors ({}): for `arch = \"{}\"` \
-         download {} ({}); the others are dino_deitsmall16_pretrain.pth (vits16, the reference's), \
-         dino_deitsmall8_pretrain.pth (vits8), dino_vitbase16_pretrain.pth (vitb16) and \
-         dino_vitbase8_pretrain.pth (vitb8), under https://dl.fbaipublicfiles.com/dino/<name>/<name>.pth",
+        "download {} (the official DINO {} backbone weights, listed at {}) from {}; for the other          architectures the files are dino_deitsmall16_pretrain.pth (vits16, the reference's),          dino_deitsmall8_pretrain.pth (vits8), dino_vitbase16_pretrain.pth (vitb16) and          dino_vitbase8_pretrain.pth (vitb8), each at https://dl.fbaipublicfiles.com/dino/<name>/<name>.pth",
+        shown.official_file(),
+        shown.name(),
         arch::DINO_README,
-        if arch == Arch::Auto { "vits16" } else { arch.name() },
-        arch.official_file(),
-        arch.official_url()
+        shown.official_url()
     )
 }
 
@@ -146,9 +144,9 @@ impl DinoVitConfig {
         if !path.is_file() {
             let shown = std::path::absolute(path).unwrap_or_else(|_| path.clone());
             return Err(resource(format!(
-                "weights file `{}` not found. Put the checkpoint there or set `weights` in `[extractor]` to \
-                 where it is (relative paths are resolved against the working directory); {}. \
-                 Without weights, `kind = \"cell-stats\"` is the weight-free teacher",
+                "weights file `{}` not found: {} and save it there, or set `weights` in `[extractor]` to where \
+                 it is (relative paths are resolved against the working directory). `kind = \"cell-stats\"` \
+                 needs no weights",
                 shown.display(),
                 download_hint(self.arch)
             )));
@@ -156,7 +154,7 @@ impl DinoVitConfig {
         let sd = StateDict::load(path).map_err(|e| match e {
             CheckpointError::Format { .. } | CheckpointError::Io { .. } => resource(format!(
                 "{e}. `weights` must be a DINO ViT checkpoint as published (.pth) or its state dict as \
-                 .safetensors; {}",
+                 .safetensors: {}",
                 download_hint(self.arch)
             )),
             other => resource(other.to_string()),
@@ -165,7 +163,7 @@ impl DinoVitConfig {
         let not_dino = |e: LoadError| match e {
             LoadError::NotDino(reason) => resource(format!(
                 "`{}` is not a DINO ViT checkpoint: {reason}. Expected the backbone state dict of DINO's \
-                 VisionTransformer (`cls_token`, `pos_embed`, `patch_embed.proj.*`, `blocks.N.*`, `norm.*`); {}",
+                 VisionTransformer (`cls_token`, `pos_embed`, `patch_embed.proj.*`, `blocks.N.*`, `norm.*`): {}",
                 path.display(),
                 download_hint(self.arch)
             )),
