@@ -10,16 +10,24 @@
 const LN2_HI: f32 = 0.693_145_75;
 const LN2_LO: f32 = 1.428_606_8e-6;
 const LOG2E: f32 = std::f32::consts::LOG2_E;
+/// 1.5·2²³: adding and subtracting it rounds an `f32` of magnitude below 2²² to the nearest
+/// integer with plain additions (which vectorise on any x86-64, unlike `round`).
+const ROUNDER: f32 = 12_582_912.0;
 
 /// `e^x` for `f32`; inputs below −87 give about 1.6e-38 instead of denormals or 0, inputs
 /// above 88 are clamped (no infinities).
 #[inline(always)]
 pub fn exp(x: f32) -> f32 {
-    let x = x.clamp(-87.0, 88.0);
-    let n = (x * LOG2E).round();
+    // Compare-and-select clamps and integer bit arithmetic keep the loop vectorisable.
+    let x = if x < -87.0 { -87.0 } else { x };
+    let x = if x > 88.0 { 88.0 } else { x };
+    let shifted = x * LOG2E + ROUNDER;
+    let n = shifted - ROUNDER;
+    // The low mantissa bits of `shifted` hold n (two's complement): 2^n's exponent field.
+    let n_bits = shifted.to_bits().wrapping_sub(ROUNDER.to_bits());
+    let scale = f32::from_bits(n_bits.wrapping_add(127) << 23);
     let r = x - n * LN2_HI - n * LN2_LO;
     let p = 1.0 + r * (1.0 + r * (0.5 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0 + r * (1.0 / 720.0))))));
-    let scale = f32::from_bits(((n as i32 + 127) as u32) << 23);
     p * scale
 }
 
@@ -41,15 +49,42 @@ pub fn gelu(x: f32) -> f32 {
     0.5 * x * (1.0 + erf(x * std::f32::consts::FRAC_1_SQRT_2))
 }
 
+/// Sum of a slice with eight independent accumulators (vectorises; the order differs from a
+/// sequential sum only by rounding).
+#[inline]
+pub fn sum(values: &[f32]) -> f32 {
+    let mut acc = [0.0f32; 8];
+    let chunks = values.chunks_exact(8);
+    let rest: f32 = chunks.remainder().iter().sum();
+    for c in chunks {
+        for k in 0..8 {
+            acc[k] += c[k];
+        }
+    }
+    acc.iter().sum::<f32>() + rest
+}
+
+/// Maximum of a slice (NaN-free input), with eight independent accumulators.
+#[inline]
+pub fn max(values: &[f32]) -> f32 {
+    let mut acc = [f32::NEG_INFINITY; 8];
+    let chunks = values.chunks_exact(8);
+    let rest = chunks.remainder().iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    for c in chunks {
+        for k in 0..8 {
+            acc[k] = if c[k] > acc[k] { c[k] } else { acc[k] };
+        }
+    }
+    acc.iter().copied().fold(rest, f32::max)
+}
+
 /// In-place softmax of one row (max-subtracted).
 pub fn softmax_row(row: &mut [f32]) {
-    let max = row.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-    let mut sum = 0.0f32;
+    let m = max(row);
     for v in row.iter_mut() {
-        *v = exp(*v - max);
-        sum += *v;
+        *v = exp(*v - m);
     }
-    let inv = 1.0 / sum;
+    let inv = 1.0 / sum(row);
     for v in row.iter_mut() {
         *v *= inv;
     }
@@ -108,6 +143,15 @@ mod tests {
             let want = 0.5 * x * (1.0 + erf_ref(x / std::f64::consts::SQRT_2));
             assert!((gelu(x as f32) as f64 - want).abs() < 2e-6, "gelu({x})");
         }
+    }
+
+    #[test]
+    fn sums_and_maxima() {
+        let v: Vec<f32> = (0..37).map(|i| ((i * 13) % 29) as f32 - 9.0).collect();
+        assert_eq!(sum(&v), v.iter().sum::<f32>());
+        assert_eq!(max(&v), 19.0);
+        assert_eq!(max(&v[..3]), v[..3].iter().copied().fold(f32::MIN, f32::max));
+        assert_eq!(sum(&[]), 0.0);
     }
 
     #[test]

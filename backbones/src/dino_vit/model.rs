@@ -16,10 +16,10 @@
 
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
-use sos_core::nn::{matmul, MatRef};
+use sos_core::nn::{matmul, MatRef, PARALLEL_MIN_MACS};
 
 use super::checkpoint::{CheckpointError, StateDict};
-use super::fastmath::{gelu, softmax_row};
+use super::fastmath::{gelu, softmax_row, sum};
 use super::interpolate::interpolate_pos_grid;
 
 /// LayerNorm epsilon of DINO's ViTs.
@@ -126,9 +126,11 @@ impl LayerNorm {
         let dim = self.weight.len();
         out.par_chunks_mut(dim * ROWS_PER_TASK).zip(x.par_chunks(dim * ROWS_PER_TASK)).for_each(|(o, xs)| {
             for (orow, xrow) in o.chunks_exact_mut(dim).zip(xs.chunks_exact(dim)) {
-                let mean = xrow.iter().sum::<f32>() / dim as f32;
-                let var = xrow.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / dim as f32;
-                let inv = 1.0 / (var + LN_EPS).sqrt();
+                let mean = sum(xrow) / dim as f32;
+                for (o, &v) in orow.iter_mut().zip(xrow) {
+                    *o = (v - mean) * (v - mean);
+                }
+                let inv = 1.0 / (sum(orow) / dim as f32 + LN_EPS).sqrt();
                 for (((o, &v), g), b) in orow.iter_mut().zip(xrow).zip(&self.weight).zip(&self.bias) {
                     *o = (v - mean) * inv * g + b;
                 }
@@ -408,6 +410,14 @@ impl Vit {
 fn attention(qkv: &[f32], batch: usize, n: usize, heads: usize, dh: usize, out: &mut [f32], cls_attn: Option<&mut [f32]>) {
     let d = heads * dh;
     let scale = 1.0 / (dh as f32).sqrt();
+    // With enough (image, head) tasks to occupy the pool, query blocks small enough that
+    // each product runs on its task's thread (nested splitting only adds overhead);
+    // otherwise large blocks whose products use the whole pool.
+    let query_block = if batch * heads >= 2 * rayon::current_num_threads() {
+        ((PARALLEL_MIN_MACS - 1) / (dh * n)).clamp(8, QUERY_BLOCK)
+    } else {
+        QUERY_BLOCK
+    };
     let mut head_out = vec![0.0f32; batch * heads * n * dh];
     let mut cls_rows = vec![0.0f32; batch * heads * n];
     head_out.par_chunks_mut(n * dh).zip(cls_rows.par_chunks_mut(n)).enumerate().for_each(|(task, (o, cls))| {
@@ -423,7 +433,7 @@ fn attention(qkv: &[f32], batch: usize, n: usize, heads: usize, dh: usize, out: 
             k[i * dh..(i + 1) * dh].copy_from_slice(&row[d + h * dh..d + (h + 1) * dh]);
             v[i * dh..(i + 1) * dh].copy_from_slice(&row[2 * d + h * dh..2 * d + (h + 1) * dh]);
         }
-        let block = QUERY_BLOCK.min(n);
+        let block = query_block.min(n);
         let mut scores = vec![0.0f32; block * n];
         for start in (0..n).step_by(block) {
             let rows = block.min(n - start);
@@ -450,5 +460,72 @@ fn attention(qkv: &[f32], batch: usize, n: usize, heads: usize, dh: usize, out: 
                 c[b * n + j] = sum / heads as f32;
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Attention in f64 with plain loops.
+    fn naive(qkv: &[f32], batch: usize, n: usize, heads: usize, dh: usize) -> (Vec<f64>, Vec<f64>) {
+        let d = heads * dh;
+        let mut out = vec![0.0f64; batch * n * d];
+        let mut cls = vec![0.0f64; batch * n];
+        let at = |b: usize, i: usize, part: usize, h: usize, j: usize| qkv[(b * n + i) * 3 * d + part * d + h * dh + j] as f64;
+        for b in 0..batch {
+            for h in 0..heads {
+                for i in 0..n {
+                    let s: Vec<f64> = (0..n)
+                        .map(|k| (0..dh).map(|j| at(b, i, 0, h, j) * at(b, k, 1, h, j)).sum::<f64>() / (dh as f64).sqrt())
+                        .collect();
+                    let m = s.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                    let e: Vec<f64> = s.iter().map(|v| (v - m).exp()).collect();
+                    let z: f64 = e.iter().sum();
+                    for j in 0..dh {
+                        out[(b * n + i) * d + h * dh + j] = (0..n).map(|k| e[k] / z * at(b, k, 2, h, j)).sum();
+                    }
+                    if i == 0 {
+                        for k in 0..n {
+                            cls[b * n + k] += e[k] / z / heads as f64;
+                        }
+                    }
+                }
+            }
+        }
+        (out, cls)
+    }
+
+    #[test]
+    fn attention_matches_plain_loops_in_both_blockings() {
+        // (batch 1, 2 heads): few tasks, large query blocks (300 tokens = 2 blocks);
+        // (batch 3, 4 heads): many tasks, small blocks on each task's thread.
+        for (batch, heads, n) in [(1usize, 2usize, 300usize), (3, 4, 70)] {
+            let dh = 16;
+            let d = heads * dh;
+            let qkv: Vec<f32> = (0..batch * n * 3 * d).map(|i| (((i * 2654435761) % 2001) as f32 / 1000.0 - 1.0) * 1.5).collect();
+            let mut out = vec![0.0f32; batch * n * d];
+            let mut cls = vec![0.0f32; batch * n];
+            attention(&qkv, batch, n, heads, dh, &mut out, Some(&mut cls));
+            let (want, want_cls) = naive(&qkv, batch, n, heads, dh);
+            let err = out.iter().zip(&want).map(|(a, b)| (*a as f64 - b).abs()).fold(0.0, f64::max);
+            let err_cls = cls.iter().zip(&want_cls).map(|(a, b)| (*a as f64 - b).abs()).fold(0.0, f64::max);
+            assert!(err < 1e-5 && err_cls < 1e-6, "batch {batch} heads {heads}: {err} {err_cls}");
+        }
+    }
+
+    #[test]
+    fn parameter_count_of_vit_s16() {
+        // DINO ViT-S/16 has 21.7 M parameters (head excluded).
+        let s = VitShape::dino(384, 16, 12, 6);
+        assert_eq!(s.num_parameters(), 21_665_664);
+        let v = Vit::random(VitShape::dino(64, 16, 2, 2), 0);
+        let stored = v.patch_embed.weight.len() + v.patch_embed.bias.len() + v.cls_token.len() + v.pos_embed.len()
+            + v.blocks.iter().map(|b| {
+                [&b.qkv, &b.proj, &b.fc1, &b.fc2].iter().map(|l| l.weight.len() + l.bias.len()).sum::<usize>()
+                    + 2 * (b.norm1.weight.len() + b.norm2.weight.len())
+            }).sum::<usize>()
+            + 2 * v.norm.weight.len();
+        assert_eq!(stored, v.shape.num_parameters());
     }
 }
