@@ -2,7 +2,17 @@
 //!
 //! - [`cell_stats`]: `kind = "cell-stats"`, weight-free colour and texture statistics per
 //!   cell, the offline fallback for DINO.
+//! - [`dino_vit`]: `kind = "dino-vit"`, the reference's DINO ViT (S/16, S/8, B/16, B/8) run
+//!   natively from the official `.pth` or `.safetensors` weights.
+//! - `onnx` (cargo feature `onnx`): `kind = "onnx"`, any exported backbone through ONNX
+//!   Runtime, loaded dynamically at run time.
+//! - [`fixture`]: the compact numeric fixture format of the ViT parity tests.
 
 pub mod cell_stats;
+pub mod dino_vit;
+pub mod fixture;
+#[cfg(feature = "onnx")]
+pub mod onnx;
 
 pub use cell_stats::{CellStats, CellStatsConfig, SaliencyScale};
+pub use dino_vit::{DinoVit, DinoVitConfig};
