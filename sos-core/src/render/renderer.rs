@@ -1,10 +1,16 @@
 //! Rendering a batch of rays through a field: candidate samples with empty-space skipping, a
 //! cheap density pass for early ray termination (and, with a frozen field, weight
 //! thresholding), a full pass on the surviving samples, then compositing and its backward.
+//!
+//! A field that asks for [`Hierarchical`] sampling (NeRF's coarse + fine networks) gets its
+//! candidates from a proposal pass instead: stratified proposal samples (occupancy-skipped like
+//! any candidates) are composited with the proposal network's density, `fine_samples` more are
+//! drawn from those weights by inverse CDF, and the union is the candidate set of the field.
 
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
+use crate::plugin::field::Hierarchical;
 use crate::plugin::{FieldTape, RadianceField};
 use crate::render::composite::{self, RayColor, RayGrad, RaySamples};
 use crate::render::contraction::Contraction;
@@ -57,6 +63,10 @@ pub struct Rendered {
     pub tape: FieldTape,
     /// Candidates placed before the density pass (for statistics).
     pub n_candidates: usize,
+    /// The proposal pass of a [`Hierarchical`] field, composited (weights and colours filled),
+    /// with its own tape; present only when rendering with `record` (training), so that the
+    /// proposal network gets its own photometric loss as in NeRF.
+    pub coarse: Option<Box<Rendered>>,
 }
 
 /// Marches, prunes and evaluates the field. Call [`Rendered::composite`] next.
@@ -69,9 +79,38 @@ pub fn render(
     rng: &mut impl Rng,
 ) -> Rendered {
     let timer = std::time::Instant::now();
-    let candidates = march_parallel(ctx, rays, options.march, rng);
+    let (candidates, coarse) = match field.hierarchical() {
+        Some(h) => propose(field, ctx, rays, options, h, record, rng),
+        None => (march_parallel(ctx, rays, options.march, rng), None),
+    };
     let t_march = timer.elapsed().as_secs_f64();
     let n_candidates = candidates.len();
+    let prune = options.early_stop > 0.0 || options.min_weight > 0.0;
+    if !prune {
+        // Nothing to decide from density alone: skip the density pass (for network fields it
+        // costs nearly as much as the full pass).
+        let mut density = vec![0.0; candidates.len()];
+        let mut rgb = vec![[0.0; 3]; candidates.len()];
+        let tape = field.forward(&candidates.positions, &candidates.directions, &mut density, &mut rgb, record);
+        if std::env::var("SOS_PROFILE").is_ok() {
+            eprintln!(
+                "render: march {:.3} forward {:.3} (samples {})",
+                t_march,
+                timer.elapsed().as_secs_f64() - t_march,
+                n_candidates
+            );
+        }
+        return Rendered {
+            samples: candidates,
+            density,
+            rgb,
+            weights: Vec::new(),
+            colors: Vec::new(),
+            tape,
+            n_candidates,
+            coarse,
+        };
+    }
 
     // Density-only pass to find where each ray terminates and which weights matter.
     let mut sigma = vec![0.0; candidates.len()];
@@ -121,7 +160,100 @@ pub fn render(
             samples.len()
         );
     }
-    Rendered { samples, density, rgb, weights: Vec::new(), colors: Vec::new(), tape, n_candidates }
+    Rendered { samples, density, rgb, weights: Vec::new(), colors: Vec::new(), tape, n_candidates, coarse }
+}
+
+/// The proposal pass of a [`Hierarchical`] field: returns the fine candidates (proposal and
+/// importance samples merged, each with the interval it stands for) and, when `record`, the
+/// composited proposal pass.
+fn propose(
+    field: &dyn RadianceField,
+    ctx: RenderContext,
+    rays: &RayBatch,
+    options: RenderOptions,
+    h: Hierarchical,
+    record: bool,
+    rng: &mut impl Rng,
+) -> (Samples, Option<Box<Rendered>>) {
+    let proposal = field.coarse().unwrap_or(field);
+    // Strata midpoints, then (training) one uniform draw inside each stratum.
+    let march = MarchOptions { steps: h.coarse_samples.max(1), stratified: false };
+    let mut coarse = march_parallel(ctx, rays, march, rng);
+    let starts: Vec<f32> = coarse.t.iter().zip(&coarse.delta).map(|(t, d)| t - 0.5 * d).collect();
+    if options.march.stratified {
+        for r in 0..coarse.n_rays() {
+            let (o, d) = (rays.origins[r], rays.directions[r]);
+            for i in coarse.range(r) {
+                let t = starts[i] + rng.gen::<f32>() * coarse.delta[i];
+                coarse.t[i] = t;
+                coarse.positions[i] = crate::camera::axpy(o, t, d);
+            }
+        }
+    }
+    let n = coarse.len();
+    let mut density = vec![0.0; n];
+    let mut rendered = None;
+    let weights = if record {
+        let mut rgb = vec![[0.0; 3]; n];
+        let tape = proposal.forward(&coarse.positions, &coarse.directions, &mut density, &mut rgb, true);
+        let mut r = Rendered {
+            samples: coarse.clone(),
+            density,
+            rgb,
+            weights: Vec::new(),
+            colors: Vec::new(),
+            tape,
+            n_candidates: n,
+            coarse: None,
+        };
+        r.composite(&[], 0);
+        let w = r.weights.clone();
+        rendered = Some(Box::new(r));
+        w
+    } else {
+        proposal.density(&coarse.positions, &mut density);
+        let mut w = vec![0.0; n];
+        for r in 0..coarse.n_rays() {
+            let range = coarse.range(r);
+            composite::weights(&density[range.clone()], &coarse.delta[range.clone()], &[], &mut w[range]);
+        }
+        w
+    };
+    // Importance samples per chunk of rays, in parallel, each chunk with its own stream.
+    let n_rays = coarse.n_rays();
+    let n_chunks = n_rays.div_ceil(MARCH_CHUNK);
+    let seeds: Vec<u64> = (0..n_chunks).map(|_| rng.gen()).collect();
+    let stratified = options.march.stratified;
+    let parts: Vec<Samples> = (0..n_chunks)
+        .into_par_iter()
+        .map(|c| {
+            let mut local = rand_chacha::ChaCha8Rng::seed_from_u64(seeds[c]);
+            let mut out = Samples { ray_start: vec![0], ..Default::default() };
+            let (mut ts, mut deltas) = (Vec::new(), Vec::new());
+            for r in c * MARCH_CHUNK..((c + 1) * MARCH_CHUNK).min(n_rays) {
+                let range = coarse.range(r);
+                let ends: Vec<f32> = range.clone().map(|i| starts[i] + coarse.delta[i]).collect();
+                let fine = sampler::sample_bins(
+                    &starts[range.clone()],
+                    &ends,
+                    &weights[range.clone()],
+                    h.fine_samples,
+                    if stratified { Some(&mut local) } else { None },
+                );
+                sampler::merge_intervals(&starts[range.clone()], &ends, &coarse.t[range], &fine, &mut ts, &mut deltas);
+                let (o, d) = (rays.origins[r], rays.directions[r]);
+                for (&t, &delta) in ts.iter().zip(&deltas) {
+                    out.t.push(t);
+                    out.delta.push(delta);
+                    out.positions.push(crate::camera::axpy(o, t, d));
+                    out.directions.push(d);
+                }
+                out.ray_start.push(out.t.len() as u32);
+            }
+            out
+        })
+        .collect();
+    (concat(parts), rendered)
 }
 
 fn march_parallel(ctx: RenderContext, rays: &RayBatch, options: MarchOptions, rng: &mut impl Rng) -> Samples {
