@@ -235,7 +235,7 @@ pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<S
         }
     }
     bar.finish();
-    session.refresh_occupancy(0.0);
+    session.bake_occupancy();
     session.save_checkpoint()?;
     Ok(last)
 }
