@@ -2,6 +2,7 @@
 //! (fields, datasets, extractors, miners, losses), so binaries only need `use sos_plugins as _;`.
 
 pub mod nerf;
+pub mod nerf_pp;
 pub mod voxel_grid;
 
 pub use sos_backbones as backbones;

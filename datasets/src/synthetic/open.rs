@@ -137,6 +137,7 @@ impl OpenWorld {
     }
 }
 
+#[cfg(test)]
 impl OpenWorld {
     /// [`Trace::trace`] without the trait in scope (tests).
     pub fn trace_at(&self, o: Vec3, d: Vec3) -> Sample {
