@@ -8,7 +8,7 @@
 //! object shadows), so appearance is view-independent. Colour is 2x2 supersampled; the mask is
 //! 1 where the pixel centre's primary ray hits the foreground object.
 //!
-//! Two rigs:
+//! Three rigs:
 //! - `object-centric`: cameras on the upper hemisphere around the object, inside the room, all
 //!   looking at the object centre; extent `Bounded` = the room box padded by 5 cm; render path
 //!   a 25° circle around the object.
@@ -16,9 +16,15 @@
 //!   the front of the room; everything is expressed in the frame of the LLFF average pose (the
 //!   mean camera is the identity, looking along −Z); extent `ForwardFacing` with
 //!   near = 0.9 x the nearest and far = 1.05 x the farthest content depth; render path the LLFF
-//!   spiral.
+//!   spiral;
+//! - `unbounded`: no room. The same object stands on an open ground (40 m disk) ringed by
+//!   distant towers (8–18 m) under a sky at infinity; cameras on a horizontal circle of radius
+//!   2.3 m around the object, looking at it; extent `Unbounded` with the sphere centred on the
+//!   object and 1.1 x the farthest camera distance as radius (so the cameras lie inside it, as
+//!   NeRF++'s normalisation requires); render path a circle at 1.3 m.
 
 mod geometry;
+mod open;
 mod render;
 mod rig;
 mod texture;
@@ -43,13 +49,15 @@ pub enum Rig {
     ObjectCentric,
     /// Parallel cameras on a small grid in front of the scene (extent `ForwardFacing`).
     ForwardFacing,
+    /// Cameras on a circle around the object in an open world (extent `Unbounded`).
+    Unbounded,
 }
 
 /// Configuration of the `synthetic` dataset (`[scene] kind = "synthetic"`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SyntheticConfig {
-    /// Camera rig: `"object-centric"` (default) or `"forward-facing"`.
+    /// Camera rig: `"object-centric"` (default), `"forward-facing"` or `"unbounded"`.
     pub rig: Rig,
     /// Image width in pixels (default 400).
     pub width: u32,
@@ -119,7 +127,7 @@ fn default_config() -> Box<dyn DatasetConfig> {
 inventory::submit! {
     Registration::<dyn DatasetConfig>::new(
         "synthetic",
-        "procedural ray-traced room with one object and exact masks (object-centric or forward-facing)",
+        "procedural ray-traced scene with one object and exact masks (object-centric, forward-facing or unbounded rig)",
         default_config,
     )
 }
@@ -179,6 +187,37 @@ pub fn generate(cfg: &SyntheticConfig) -> Scene {
                 // Z-depth bounds distance along any ray from below.
                 near: 0.9 * near,
                 render_path,
+            }
+        }
+        Rig::Unbounded => {
+            let world = open::OpenWorld::new(cfg.seed);
+            let cams = rig::unbounded(cfg.views, w, h, &mut rng);
+            let centre = OBJECT_CENTRE;
+            let farthest = cams
+                .iter()
+                .map(|c| {
+                    let o = c.origin();
+                    ((o[0] - centre[0]).powi(2) + (o[1] - centre[1]).powi(2) + (o[2] - centre[2]).powi(2)).sqrt()
+                })
+                .fold(0.0f32, f32::max);
+            let mut near = f32::INFINITY;
+            let views = cams
+                .into_iter()
+                .enumerate()
+                .map(|(i, cam)| {
+                    let r = render::render_view(&world, &cam, cam.origin(), cam.forward());
+                    near = near.min(r.depth_range[0]);
+                    view(i, cam, r)
+                })
+                .collect();
+            Scene {
+                name: "synthetic-unbounded".into(),
+                views,
+                train,
+                test,
+                extent: SceneExtent::Unbounded { center: centre, radius: 1.1 * farthest },
+                near: 0.9 * near,
+                render_path: rig::circle_path(cfg.render_path_views, w, h),
             }
         }
         Rig::ForwardFacing => {
@@ -348,6 +387,38 @@ mod tests {
         assert_eq!(scene.render_path.len(), 60);
         for cam in &scene.render_path {
             cam.validate().unwrap();
+        }
+    }
+
+    #[test]
+    fn unbounded_scene_has_cameras_inside_the_sphere_and_distant_content() {
+        let scene = generate(&small(Rig::Unbounded));
+        scene.validate().unwrap();
+        let SceneExtent::Unbounded { center, radius } = scene.extent else { panic!("not unbounded") };
+        assert!((2.3..3.0).contains(&radius), "radius {radius}");
+        let mut far_pixels = 0usize;
+        for v in &scene.views {
+            let o = v.camera.origin();
+            let d: f32 = (0..3).map(|k| (o[k] - center[k]).powi(2)).sum::<f32>().sqrt();
+            assert!(d < radius, "camera outside the foreground sphere");
+            let px = v.camera.project(OBJECT_CENTRE).unwrap();
+            assert!((px[0] - 80.0).abs() < 0.01 && (px[1] - 60.0).abs() < 0.01);
+            assert_eq!(v.mask.as_ref().unwrap().data[60 * 160 + 80], 1.0);
+            // Pixels beyond the sphere: the upper image half sees towers and sky.
+            for row in 0..20u32 {
+                for col in (0..160u32).step_by(8) {
+                    let dir = v.camera.direction(col as f32 + 0.5, row as f32 + 0.5);
+                    let s = open::OpenWorld::new(0).trace_at(o, dir);
+                    if (0..3).map(|k| (s.point[k] - center[k]).powi(2)).sum::<f32>().sqrt() > 3.0 * radius {
+                        far_pixels += 1;
+                    }
+                }
+            }
+        }
+        assert!(far_pixels > 100, "only {far_pixels} probed pixels see distant content");
+        for &i in &scene.test {
+            let f = fg_fraction(&scene.views[i]);
+            assert!((0.03..=0.4).contains(&f), "view {i}: foreground fraction {f}");
         }
     }
 

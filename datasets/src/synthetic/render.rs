@@ -5,7 +5,7 @@ use rayon::prelude::*;
 use sos_core::camera::{dot, sub, Camera, Vec3};
 use sos_core::image::{GrayImage, RgbImage};
 
-use super::world::World;
+use super::world::Trace;
 
 /// Sub-pixel offsets of the 2x2 supersampling pattern.
 const SUBSAMPLES: [[f32; 2]; 4] = [[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75]];
@@ -22,7 +22,7 @@ pub struct Rendered {
 }
 
 /// Renders `cam` (world frame). Depths are measured as `dot(hit − depth_origin, depth_axis)`.
-pub fn render_view(world: &World, cam: &Camera, depth_origin: Vec3, depth_axis: Vec3) -> Rendered {
+pub fn render_view<W: Trace + Sync>(world: &W, cam: &Camera, depth_origin: Vec3, depth_axis: Vec3) -> Rendered {
     let (w, h) = (cam.width as usize, cam.height as usize);
     let mut image = RgbImage::new(w, h);
     let mut mask = GrayImage {

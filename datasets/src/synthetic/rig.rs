@@ -111,3 +111,31 @@ pub fn forward_facing(n: usize, width: u32, height: u32, rng: &mut SplitMix) -> 
         })
         .collect()
 }
+
+/// Distance of the unbounded rig's cameras from the object centre.
+pub const CIRCLE_RADIUS: f32 = 2.3;
+
+fn circle_camera(azimuth: f32, height: f32, width: u32, height_px: u32) -> Camera {
+    let c = OBJECT_CENTRE;
+    let (sa, ca) = azimuth.sin_cos();
+    let eye = [c[0] + CIRCLE_RADIUS * sa, height, c[2] + CIRCLE_RADIUS * ca];
+    Camera::look_at(eye, c, [0.0, 1.0, 0.0], width, height_px, focal_for(width))
+}
+
+/// `n` cameras on a horizontal circle around the object (azimuths evenly spread with jitter,
+/// heights 1.0–1.6 m), all looking at the object centre: most rays leave the foreground region
+/// and end on distant towers, the far ground or the sky.
+pub fn unbounded(n: usize, width: u32, height: u32, rng: &mut SplitMix) -> Vec<Camera> {
+    let step = std::f32::consts::TAU / n as f32;
+    (0..n)
+        .map(|i| {
+            let azimuth = i as f32 * step + rng.range(-0.3, 0.3) * step;
+            circle_camera(azimuth, rng.range(1.0, 1.6), width, height)
+        })
+        .collect()
+}
+
+/// A circle of `n` cameras at 1.3 m around the object.
+pub fn circle_path(n: usize, width: u32, height: u32) -> Vec<Camera> {
+    (0..n).map(|i| circle_camera(std::f32::consts::TAU * i as f32 / n as f32, 1.3, width, height)).collect()
+}

@@ -57,6 +57,18 @@ pub struct Sample {
     pub point: Vec3,
 }
 
+/// Something primary rays can be traced through (the room, the open world).
+pub trait Trace {
+    /// Traces a primary ray (unit direction `d`).
+    fn trace(&self, o: Vec3, d: Vec3) -> Sample;
+}
+
+impl Trace for World {
+    fn trace(&self, o: Vec3, d: Vec3) -> Sample {
+        World::trace(self, o, d)
+    }
+}
+
 /// The procedural world; `seed` varies the noise patterns.
 #[derive(Debug, Clone)]
 pub struct World {

@@ -294,6 +294,21 @@ impl RadianceField for VoxelGridField {
         self.touched.clear();
     }
 
+    fn gradients_finite(&self) -> bool {
+        let ch = self.grid.channels;
+        self.touched.iter().all(|&v| self.grads[v as usize * ch..(v as usize + 1) * ch].iter().all(|g| g.is_finite()))
+    }
+
+    fn discard_gradients(&mut self) {
+        let ch = self.grid.channels;
+        for &v in &self.touched {
+            let v = v as usize;
+            self.grads[v * ch..(v + 1) * ch].fill(0.0);
+            self.touched_flag[v] = false;
+        }
+        self.touched.clear();
+    }
+
     fn begin_step(&mut self, step: usize, total_steps: usize) -> bool {
         let schedule = &self.config.upsample_at;
         if self.next_growth < schedule.len()
@@ -443,6 +458,21 @@ mod tests {
             checked += 1;
         }
         assert!(checked > 50, "only {checked} parameters had gradients");
+    }
+
+    #[test]
+    fn non_finite_gradients_are_detected_and_discarded() {
+        let mut f = field();
+        let positions = vec![[0.1, -0.3, 0.5]];
+        let directions = vec![[0.0, 0.6, 0.8]];
+        f.backward(&positions, &directions, None, &[f32::NAN], &[[0.1, 0.2, 0.3]]);
+        assert!(!f.gradients_finite());
+        let before = f.grid.data.clone();
+        f.discard_gradients();
+        assert!(f.gradients_finite());
+        f.step(1.0);
+        assert_eq!(f.grid.data, before, "a discarded step changes nothing");
+        assert!(f.grads.iter().all(|&g| g == 0.0));
     }
 
     #[test]

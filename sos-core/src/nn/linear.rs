@@ -83,7 +83,7 @@ impl Linear {
     ///
     /// # Shapes
     /// Each block is `[n, wᵢ]` with `Σ wᵢ = in_dim`; `y`: `[n, out_dim]`.
-    pub(crate) fn forward_blocks(&self, blocks: &[MatRef<'_>], y: &mut [f32], act: Activation) {
+    pub fn forward_blocks(&self, blocks: &[MatRef<'_>], y: &mut [f32], act: Activation) {
         self.check_blocks(blocks);
         let mut row = 0;
         for (i, x) in blocks.iter().enumerate() {
@@ -101,7 +101,7 @@ impl Linear {
     ///
     /// # Shapes
     /// Blocks as in `forward_blocks`; `g`: `[n, out_dim]`; `dxs[i]`: `[n, wᵢ]`.
-    pub(crate) fn backward_blocks(
+    pub fn backward_blocks(
         &mut self,
         blocks: &[MatRef<'_>],
         g: MatRef<'_>,

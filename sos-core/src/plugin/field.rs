@@ -13,6 +13,17 @@ use crate::scene::SceneExtent;
 /// weights…). Fields that can recompute everything return `None`.
 pub type FieldTape = Option<Box<dyn Any + Send + Sync>>;
 
+/// Coarse-to-fine sampling a field asks the renderer for (NeRF's hierarchical sampling): a
+/// proposal pass over `coarse_samples` stratified candidates, then `fine_samples` more drawn by
+/// inverse CDF from the proposal's weights; the field itself is evaluated on the union.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Hierarchical {
+    /// Stratified proposal samples per ray (the reference: 64).
+    pub coarse_samples: usize,
+    /// Importance samples per ray added to the proposal's (the reference: 128).
+    pub fine_samples: usize,
+}
+
 /// A trainable radiance field (hot path).
 ///
 /// # Shapes
@@ -55,6 +66,17 @@ pub trait RadianceField: Send + Sync {
     /// schedule's learning-rate factor, then clears them.
     fn step(&mut self, lr_factor: f32);
 
+    /// Whether every gradient accumulated since the last [`RadianceField::step`] is finite
+    /// (trainers check it before stepping; the default trusts the field).
+    fn gradients_finite(&self) -> bool {
+        true
+    }
+
+    /// Drops the gradients accumulated since the last step without applying them (a step with
+    /// a non-finite loss or gradient is skipped this way). Fields that accumulate must
+    /// implement it; the default does nothing.
+    fn discard_gradients(&mut self) {}
+
     /// Called at the start of every stage-1 step; grids use it to grow coarse-to-fine.
     /// Returns true when the parametrisation changed (so occupancy must be rebuilt).
     fn begin_step(&mut self, _step: usize, _total_steps: usize) -> bool {
@@ -66,6 +88,23 @@ pub trait RadianceField: Send + Sync {
     /// of candidate samples by it, so coarse stages are cheap.
     fn detail_fraction(&self) -> f32 {
         1.0
+    }
+
+    /// Hierarchical sampling this field wants, if any (default: single-pass marching).
+    fn hierarchical(&self) -> Option<Hierarchical> {
+        None
+    }
+
+    /// The separate proposal ("coarse") network of a hierarchical field; `None` when the
+    /// field proposes its own samples. Its gradients are applied by the owner's
+    /// [`RadianceField::step`].
+    fn coarse(&self) -> Option<&dyn RadianceField> {
+        None
+    }
+
+    /// Mutable access to the proposal network, for its backward pass.
+    fn coarse_mut(&mut self) -> Option<&mut dyn RadianceField> {
+        None
     }
 
     /// Width of the per-sample segmentation input.

@@ -78,4 +78,57 @@ impl OccupancyGrid {
             self.occupied[i] = self.density[i] > self.threshold;
         }
     }
+
+    /// Marks every cell next to (sharing a face, edge or corner with) an occupied cell as
+    /// occupied too. A baked grid probes each cell once, so a thin surface between two probes
+    /// could be missed; one cell of margin makes skipping conservative.
+    pub fn dilate(&mut self) {
+        let res = self.res;
+        let old = self.occupied.clone();
+        let at = |i: isize, j: isize, k: isize| -> bool {
+            let r = res as isize;
+            (0..r).contains(&i) && (0..r).contains(&j) && (0..r).contains(&k) && old[((k * r + j) * r + i) as usize]
+        };
+        self.occupied.par_chunks_mut(res * res).enumerate().for_each(|(k, slab)| {
+            for j in 0..res {
+                for i in 0..res {
+                    let (i, j, k) = (i as isize, j as isize, k as isize);
+                    let mut any = false;
+                    'n: for dk in -1..=1 {
+                        for dj in -1..=1 {
+                            for di in -1..=1 {
+                                if at(i + di, j + dj, k + dk) {
+                                    any = true;
+                                    break 'n;
+                                }
+                            }
+                        }
+                    }
+                    slab[(j * res as isize + i) as usize] = any;
+                }
+            }
+        });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn dilation_grows_by_one_cell() {
+        let mut g = OccupancyGrid::new(8, 1.0);
+        g.occupied.iter_mut().for_each(|o| *o = false);
+        g.occupied[(3 * 8 + 3) * 8 + 3] = true;
+        g.dilate();
+        assert_eq!(g.occupied.iter().filter(|&&o| o).count(), 27);
+        assert!(g.is_occupied([2.5 / 8.0, 4.5 / 8.0, 3.5 / 8.0]));
+        assert!(!g.is_occupied([1.5 / 8.0, 3.5 / 8.0, 3.5 / 8.0]));
+        // Cells at the border do not wrap around.
+        let mut g = OccupancyGrid::new(4, 1.0);
+        g.occupied.iter_mut().for_each(|o| *o = false);
+        g.occupied[0] = true;
+        g.dilate();
+        assert_eq!(g.occupied.iter().filter(|&&o| o).count(), 8);
+    }
 }

@@ -1,10 +1,16 @@
 //! Rendering a batch of rays through a field: candidate samples with empty-space skipping, a
 //! cheap density pass for early ray termination (and, with a frozen field, weight
 //! thresholding), a full pass on the surviving samples, then compositing and its backward.
+//!
+//! A field that asks for [`Hierarchical`] sampling (NeRF's coarse + fine networks) gets its
+//! candidates from a proposal pass instead: stratified proposal samples (occupancy-skipped like
+//! any candidates) are composited with the proposal network's density, `fine_samples` more are
+//! drawn from those weights by inverse CDF, and the union is the candidate set of the field.
 
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
+use crate::plugin::field::Hierarchical;
 use crate::plugin::{FieldTape, RadianceField};
 use crate::render::composite::{self, RayColor, RayGrad, RaySamples};
 use crate::render::contraction::Contraction;
@@ -57,6 +63,10 @@ pub struct Rendered {
     pub tape: FieldTape,
     /// Candidates placed before the density pass (for statistics).
     pub n_candidates: usize,
+    /// The proposal pass of a [`Hierarchical`] field, composited (weights and colours filled),
+    /// with its own tape; present only when rendering with `record` (training), so that the
+    /// proposal network gets its own photometric loss as in NeRF.
+    pub coarse: Option<Box<Rendered>>,
 }
 
 /// Marches, prunes and evaluates the field. Call [`Rendered::composite`] next.
@@ -69,25 +79,56 @@ pub fn render(
     rng: &mut impl Rng,
 ) -> Rendered {
     let timer = std::time::Instant::now();
-    let candidates = march_parallel(ctx, rays, options.march, rng);
+    let (candidates, coarse) = match field.hierarchical() {
+        Some(h) => propose(field, ctx, rays, options, h, record, rng),
+        None => (march_parallel(ctx, rays, options.march, rng), None),
+    };
     let t_march = timer.elapsed().as_secs_f64();
     let n_candidates = candidates.len();
+    let prune = options.early_stop > 0.0 || options.min_weight > 0.0;
+    if !prune {
+        // Nothing to decide from density alone: skip the density pass (for network fields it
+        // costs nearly as much as the full pass).
+        let mut density = vec![0.0; candidates.len()];
+        let mut rgb = vec![[0.0; 3]; candidates.len()];
+        let tape = field.forward(&candidates.positions, &candidates.directions, &mut density, &mut rgb, record);
+        if std::env::var("SOS_PROFILE").is_ok() {
+            eprintln!(
+                "render: march {:.3} forward {:.3} (samples {})",
+                t_march,
+                timer.elapsed().as_secs_f64() - t_march,
+                n_candidates
+            );
+        }
+        return Rendered {
+            samples: candidates,
+            density,
+            rgb,
+            weights: Vec::new(),
+            colors: Vec::new(),
+            tape,
+            n_candidates,
+            coarse,
+        };
+    }
 
     // Density-only pass to find where each ray terminates and which weights matter.
-    let mut sigma = vec![0.0; candidates.len()];
-    field.density(&candidates.positions, &mut sigma);
+    let sigma = density_pass(field, &candidates, options.early_stop);
     // For each candidate: kept or not, and the optical depth of dropped candidates since the
     // previous kept one (so the kept samples' transmittance stays exact).
     let mut keep = vec![false; candidates.len()];
     let mut skipped_before = vec![0.0f32; candidates.len()];
+    // The same criterion as the density pass, in optical depth, so the scan never reads a
+    // candidate the pass did not evaluate.
+    let stop_at = if options.early_stop > 0.0 { -options.early_stop.ln() } else { f32::INFINITY };
     for r in 0..candidates.n_rays() {
         let mut optical = 0.0f32;
         let mut skipped = 0.0f32;
         for i in candidates.range(r) {
-            let transmittance = (-optical).exp();
-            if options.early_stop > 0.0 && transmittance < options.early_stop {
+            if optical > stop_at {
                 break;
             }
+            let transmittance = (-optical).exp();
             let tau = sigma[i] * candidates.delta[i];
             let w = -(-tau).exp_m1() * transmittance;
             keep[i] = options.min_weight <= 0.0 || w > options.min_weight;
@@ -121,12 +162,169 @@ pub fn render(
             samples.len()
         );
     }
-    Rendered { samples, density, rgb, weights: Vec::new(), colors: Vec::new(), tape, n_candidates }
+    Rendered { samples, density, rgb, weights: Vec::new(), colors: Vec::new(), tape, n_candidates, coarse }
+}
+
+/// The proposal pass of a [`Hierarchical`] field: returns the fine candidates (proposal and
+/// importance samples merged, each with the interval it stands for) and, when `record`, the
+/// composited proposal pass.
+fn propose(
+    field: &dyn RadianceField,
+    ctx: RenderContext,
+    rays: &RayBatch,
+    options: RenderOptions,
+    h: Hierarchical,
+    record: bool,
+    rng: &mut impl Rng,
+) -> (Samples, Option<Box<Rendered>>) {
+    let proposal = field.coarse().unwrap_or(field);
+    // Strata midpoints, then (training) one uniform draw inside each stratum.
+    let march = MarchOptions { steps: h.coarse_samples.max(1), stratified: false };
+    let mut coarse = march_parallel(ctx, rays, march, rng);
+    let starts: Vec<f32> = coarse.t.iter().zip(&coarse.delta).map(|(t, d)| t - 0.5 * d).collect();
+    if options.march.stratified {
+        for r in 0..coarse.n_rays() {
+            let (o, d) = (rays.origins[r], rays.directions[r]);
+            for i in coarse.range(r) {
+                let t = starts[i] + rng.gen::<f32>() * coarse.delta[i];
+                coarse.t[i] = t;
+                coarse.positions[i] = crate::camera::axpy(o, t, d);
+            }
+        }
+    }
+    let n = coarse.len();
+    let mut density = vec![0.0; n];
+    let mut rendered = None;
+    let weights = if record {
+        let mut rgb = vec![[0.0; 3]; n];
+        let tape = proposal.forward(&coarse.positions, &coarse.directions, &mut density, &mut rgb, true);
+        let mut r = Rendered {
+            samples: coarse.clone(),
+            density,
+            rgb,
+            weights: Vec::new(),
+            colors: Vec::new(),
+            tape,
+            n_candidates: n,
+            coarse: None,
+        };
+        r.composite(&[], 0);
+        let w = r.weights.clone();
+        rendered = Some(Box::new(r));
+        w
+    } else {
+        proposal.density(&coarse.positions, &mut density);
+        let mut w = vec![0.0; n];
+        for r in 0..coarse.n_rays() {
+            let range = coarse.range(r);
+            composite::weights(&density[range.clone()], &coarse.delta[range.clone()], &[], &mut w[range]);
+        }
+        w
+    };
+    // Importance samples per chunk of rays, in parallel, each chunk with its own stream.
+    let n_rays = coarse.n_rays();
+    let n_chunks = n_rays.div_ceil(MARCH_CHUNK);
+    let stratified = options.march.stratified;
+    let seeds = chunk_seeds(n_chunks, stratified, rng);
+    let parts: Vec<Samples> = (0..n_chunks)
+        .into_par_iter()
+        .map(|c| {
+            let mut local = rand_chacha::ChaCha8Rng::seed_from_u64(seeds[c]);
+            let mut out = Samples { ray_start: vec![0], ..Default::default() };
+            let (mut ts, mut deltas) = (Vec::new(), Vec::new());
+            for r in c * MARCH_CHUNK..((c + 1) * MARCH_CHUNK).min(n_rays) {
+                let range = coarse.range(r);
+                let ends: Vec<f32> = range.clone().map(|i| starts[i] + coarse.delta[i]).collect();
+                let fine = sampler::sample_bins(
+                    &starts[range.clone()],
+                    &ends,
+                    &weights[range.clone()],
+                    h.fine_samples,
+                    if stratified { Some(&mut local) } else { None },
+                );
+                sampler::merge_intervals(&starts[range.clone()], &ends, &coarse.t[range], &fine, &mut ts, &mut deltas);
+                let (o, d) = (rays.origins[r], rays.directions[r]);
+                for (&t, &delta) in ts.iter().zip(&deltas) {
+                    out.t.push(t);
+                    out.delta.push(delta);
+                    out.positions.push(crate::camera::axpy(o, t, d));
+                    out.directions.push(d);
+                }
+                out.ray_start.push(out.t.len() as u32);
+            }
+            out
+        })
+        .collect();
+    (concat(parts), rendered)
+}
+
+/// Densities of the candidates, evaluated in waves: every live ray evaluates its next few
+/// candidates, then rays whose transmittance fell below `early_stop` stop, so candidates
+/// behind a ray's termination point are never evaluated (for network fields the density pass
+/// dominates a frozen-field render). Entries past a ray's termination are left at 0 and must
+/// not be read (the caller's scan stops at the same point). With `early_stop = 0` every
+/// candidate is evaluated in one batch.
+fn density_pass(field: &dyn RadianceField, candidates: &Samples, early_stop: f32) -> Vec<f32> {
+    let n = candidates.len();
+    let mut sigma = vec![0.0; n];
+    if early_stop <= 0.0 {
+        field.density(&candidates.positions, &mut sigma);
+        return sigma;
+    }
+    let n_rays = candidates.n_rays();
+    let mut cursor: Vec<usize> = (0..n_rays).map(|r| candidates.ray_start[r] as usize).collect();
+    let mut optical = vec![0.0f32; n_rays];
+    let mut live: Vec<usize> = (0..n_rays).filter(|&r| !candidates.range(r).is_empty()).collect();
+    // Optical depth at which the transmittance reaches `early_stop`.
+    let stop_at = -early_stop.ln();
+    let mut wave = FIRST_WAVE;
+    let mut idx = Vec::new();
+    let mut positions = Vec::new();
+    while !live.is_empty() {
+        idx.clear();
+        for &r in &live {
+            let end = (cursor[r] + wave).min(candidates.ray_start[r + 1] as usize);
+            idx.extend(cursor[r] as u32..end as u32);
+        }
+        positions.clear();
+        positions.extend(idx.iter().map(|&i| candidates.positions[i as usize]));
+        let mut values = vec![0.0; idx.len()];
+        field.density(&positions, &mut values);
+        for (&i, v) in idx.iter().zip(values) {
+            sigma[i as usize] = v;
+        }
+        live.retain(|&r| {
+            let end = (cursor[r] + wave).min(candidates.ray_start[r + 1] as usize);
+            for i in cursor[r]..end {
+                optical[r] += sigma[i] * candidates.delta[i];
+            }
+            cursor[r] = end;
+            end < candidates.ray_start[r + 1] as usize && optical[r] <= stop_at
+        });
+        wave = (wave * 2).min(MAX_WAVE);
+    }
+    sigma
+}
+
+/// Candidates per live ray in the first wave of [`density_pass`], doubled each wave up to
+/// [`MAX_WAVE`].
+const FIRST_WAVE: usize = 8;
+/// Largest wave of [`density_pass`].
+const MAX_WAVE: usize = 128;
+
+/// Per-chunk seeds for stratified jitter; deterministic rendering draws nothing from `rng`, so
+/// a caller's random stream does not depend on how (or whether) space was skipped.
+fn chunk_seeds(n_chunks: usize, stratified: bool, rng: &mut impl Rng) -> Vec<u64> {
+    if stratified {
+        (0..n_chunks).map(|_| rng.gen()).collect()
+    } else {
+        vec![0; n_chunks]
+    }
 }
 
 fn march_parallel(ctx: RenderContext, rays: &RayBatch, options: MarchOptions, rng: &mut impl Rng) -> Samples {
     let n_chunks = rays.len().div_ceil(MARCH_CHUNK);
-    let seeds: Vec<u64> = (0..n_chunks).map(|_| rng.gen()).collect();
+    let seeds = chunk_seeds(n_chunks, options.stratified, rng);
     let parts: Vec<Samples> = (0..n_chunks)
         .into_par_iter()
         .map(|c| {
@@ -252,4 +450,133 @@ pub fn render_inference(
         start = end;
     }
     (colors, extras)
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    use super::*;
+    use crate::camera::{Camera, Vec3};
+    use crate::render::sampler::MarchOptions;
+
+    /// A dense ball of radius 0.5 at the origin, coloured by position; counts density calls.
+    struct Ball {
+        evaluated: AtomicUsize,
+        hierarchical: Option<Hierarchical>,
+    }
+
+    impl Ball {
+        fn sigma(p: Vec3) -> f32 {
+            let r2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2];
+            if r2 < 0.25 {
+                40.0
+            } else {
+                0.0
+            }
+        }
+    }
+
+    impl RadianceField for Ball {
+        fn density(&self, positions: &[Vec3], density: &mut [f32]) {
+            self.evaluated.fetch_add(positions.len(), Ordering::Relaxed);
+            for (p, d) in positions.iter().zip(density) {
+                *d = Ball::sigma(*p);
+            }
+        }
+        fn forward(&self, p: &[Vec3], _: &[Vec3], d: &mut [f32], c: &mut [[f32; 3]], _: bool) -> FieldTape {
+            for i in 0..p.len() {
+                d[i] = Ball::sigma(p[i]);
+                c[i] = [0.5 + 0.5 * p[i][0], 0.5 + 0.5 * p[i][1], 0.5];
+            }
+            None
+        }
+        fn backward(&mut self, _: &[Vec3], _: &[Vec3], _: FieldTape, _: &[f32], _: &[[f32; 3]]) {}
+        fn step(&mut self, _: f32) {}
+        fn hierarchical(&self) -> Option<Hierarchical> {
+            self.hierarchical
+        }
+        fn seg_input_dim(&self) -> usize {
+            0
+        }
+        fn seg_input(&self, _: &[Vec3], _: &mut [f32]) {}
+        fn save_state(&self) -> Vec<u8> {
+            Vec::new()
+        }
+        fn load_state(&mut self, _: &[u8]) -> Result<(), String> {
+            Ok(())
+        }
+        fn num_parameters(&self) -> usize {
+            0
+        }
+    }
+
+    fn setup() -> (SceneExtent, Contraction, RayBatch) {
+        let extent = SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] };
+        let cam = Camera::look_at([0.0, 0.0, 3.0], [0.0; 3], [0.0, 1.0, 0.0], 16, 16, 40.0);
+        (extent, Contraction::new(&extent), RayBatch::full_image(&cam))
+    }
+
+    fn colors(field: &Ball, options: RenderOptions) -> (Vec<RayColor>, usize) {
+        let (extent, contraction, rays) = setup();
+        let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
+        field.evaluated.store(0, Ordering::Relaxed);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+        let mut r = render(field, ctx, &rays, options, false, &mut rng);
+        r.composite(&[], 0);
+        (r.colors, field.evaluated.load(Ordering::Relaxed))
+    }
+
+    #[test]
+    fn early_termination_skips_density_work_and_keeps_colours() {
+        let field = Ball { evaluated: AtomicUsize::new(0), hierarchical: None };
+        let march = MarchOptions { steps: 256, stratified: false };
+        let (full, _) = colors(&field, RenderOptions { march, early_stop: 0.0, min_weight: 0.0 });
+        let (pruned, evaluated) = colors(&field, RenderOptions { march, early_stop: 1e-4, min_weight: 1e-4 });
+        let hits = full.iter().filter(|c| c.acc > 0.5).count();
+        assert!(hits > 20, "the ball covers part of the image ({hits} rays)");
+        for (a, b) in full.iter().zip(&pruned) {
+            for k in 0..3 {
+                assert!((a.rgb[k] - b.rgb[k]).abs() < 2e-3, "{a:?} vs {b:?}");
+            }
+            assert!((a.acc - b.acc).abs() < 2e-3);
+        }
+        // Rays through the ball stop inside it, skipping at least the back half of the box.
+        let (_, all) = colors(&field, RenderOptions { march, early_stop: 0.0, min_weight: 1e-9 });
+        assert!(evaluated + 100 * hits < all, "evaluated {evaluated} of {all} densities ({hits} rays hit)");
+    }
+
+    #[test]
+    fn hierarchical_sampling_concentrates_samples_and_matches_a_dense_render() {
+        let dense = Ball { evaluated: AtomicUsize::new(0), hierarchical: None };
+        let (want, _) = colors(&dense, RenderOptions { march: MarchOptions { steps: 2048, stratified: false }, early_stop: 0.0, min_weight: 0.0 });
+        let h = Hierarchical { coarse_samples: 32, fine_samples: 64 };
+        let field = Ball { evaluated: AtomicUsize::new(0), hierarchical: Some(h) };
+        let (got, _) = colors(&field, RenderOptions { march: MarchOptions { steps: 8, stratified: false }, early_stop: 0.0, min_weight: 0.0 });
+        let mut worst = 0.0f32;
+        for (a, b) in want.iter().zip(&got) {
+            worst = worst.max((a.acc - b.acc).abs());
+            for k in 0..3 {
+                worst = worst.max((a.rgb[k] - b.rgb[k]).abs());
+            }
+        }
+        assert!(worst < 0.03, "hierarchical render differs by {worst}");
+        // With record, the proposal pass comes back composited, samples inside the box.
+        let (extent, contraction, rays) = setup();
+        let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let options = RenderOptions { march: MarchOptions { steps: 8, stratified: true }, early_stop: 0.0, min_weight: 0.0 };
+        let r = render(&field, ctx, &rays, options, true, &mut rng);
+        let coarse = r.coarse.expect("proposal pass with record");
+        assert_eq!(coarse.colors.len(), rays.len());
+        let marched = (0..rays.len()).filter(|&i| !coarse.samples.range(i).is_empty()).count();
+        assert_eq!(r.samples.len(), coarse.samples.len() + marched * 64);
+        for ray in 0..rays.len() {
+            let range = r.samples.range(ray);
+            assert!(r.samples.t[range.clone()].windows(2).all(|w| w[0] <= w[1]));
+            let span: f32 = r.samples.delta[range].iter().sum();
+            let coarse_span: f32 = coarse.samples.delta[coarse.samples.range(ray)].iter().sum();
+            assert!((span - coarse_span).abs() < 1e-3 * (1.0 + coarse_span), "intervals partition the strata");
+        }
+    }
 }

@@ -276,11 +276,131 @@ pub fn sample_pdf(edges: &[f32], weights: &[f32], n: usize, uniform: Option<&mut
         .collect()
 }
 
+/// Inverse-CDF sampling of `n` distances from a piecewise-constant density over possibly
+/// disjoint, sorted bins `[starts[k], ends[k]]` with weights `weights[k]` (the bins a
+/// hierarchical proposal pass kept after empty-space skipping). Like [`sample_pdf`], a padding
+/// of `1e-5` per bin keeps empty rays well defined, `uniform` draws the quantiles at random
+/// (training) instead of evenly spaced, and the result is sorted. No bins, no samples.
+pub fn sample_bins<R: Rng>(starts: &[f32], ends: &[f32], weights: &[f32], n: usize, uniform: Option<&mut R>) -> Vec<f32> {
+    let m = weights.len();
+    debug_assert!(starts.len() == m && ends.len() == m);
+    if m == 0 || n == 0 {
+        return Vec::new();
+    }
+    let mut cdf = Vec::with_capacity(m + 1);
+    cdf.push(0.0f64);
+    let mut acc = 0.0f64;
+    for w in weights {
+        // Non-finite weights (a diverging proposal) count as empty rather than poisoning the CDF.
+        let w = if w.is_finite() { w.max(0.0) } else { 0.0 };
+        acc += w as f64 + 1e-5;
+        cdf.push(acc);
+    }
+    let mut quantiles: Vec<f64> = match uniform {
+        Some(rng) => (0..n).map(|_| rng.gen::<f64>() * acc).collect(),
+        None => (0..n).map(|i| if n > 1 { i as f64 / (n - 1) as f64 * acc } else { 0.5 * acc }).collect(),
+    };
+    quantiles.sort_by(|a, b| a.total_cmp(b));
+    quantiles
+        .iter()
+        .map(|&u| {
+            let k = cdf[1..].partition_point(|&c| c < u).min(m - 1);
+            let span = cdf[k + 1] - cdf[k];
+            let f = if span > 0.0 { ((u - cdf[k]) / span).clamp(0.0, 1.0) as f32 } else { 0.5 };
+            starts[k] + f * (ends[k] - starts[k])
+        })
+        .collect()
+}
+
+/// Merges the proposal samples `coarse_t` (one per bin `[starts[k], ends[k]]`) with the
+/// importance samples `fine_t` (all inside those bins) into sorted distances `t` and the length
+/// `delta` of the interval each stands for: maximal runs of touching bins form segments, and
+/// each segment is partitioned at the midpoints between consecutive samples (the first
+/// interval starts at the segment's start, the last ends at its end). Gaps between segments
+/// (space the occupancy grid skipped) belong to no interval, so a sample before a gap never
+/// absorbs its length.
+pub fn merge_intervals(
+    starts: &[f32],
+    ends: &[f32],
+    coarse_t: &[f32],
+    fine_t: &[f32],
+    t: &mut Vec<f32>,
+    delta: &mut Vec<f32>,
+) {
+    t.clear();
+    delta.clear();
+    t.extend_from_slice(coarse_t);
+    t.extend_from_slice(fine_t);
+    t.sort_by(|a, b| a.total_cmp(b));
+    delta.resize(t.len(), 0.0);
+    let m = starts.len();
+    let mut i = 0; // next sample
+    let mut k = 0; // next bin
+    while k < m {
+        // Segment [a, b] = bins k..j that touch.
+        let a = starts[k];
+        let mut b = ends[k];
+        let mut j = k + 1;
+        while j < m && starts[j] <= b + 1e-4 * (ends[j] - starts[j]).max(1e-6) {
+            b = b.max(ends[j]);
+            j += 1;
+        }
+        // Samples of this segment: everything up to b (samples before a cannot exist, but clamp).
+        let first = i;
+        while i < t.len() && (t[i] <= b || j >= m) {
+            i += 1;
+        }
+        let seg = first..i;
+        for s in seg.clone() {
+            let lo = if s == seg.start { a } else { 0.5 * (t[s - 1] + t[s]) };
+            let hi = if s + 1 == seg.end { b } else { 0.5 * (t[s] + t[s + 1]) };
+            delta[s] = (hi - lo).max(0.0);
+        }
+        k = j;
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::camera::Camera;
     use rand::SeedableRng;
+
+
+    #[test]
+    fn merged_intervals_partition_the_segments_and_skip_gaps() {
+        // Two touching bins [0, 1], [1, 2], a gap, then [5, 6].
+        let starts = [0.0f32, 1.0, 5.0];
+        let ends = [1.0f32, 2.0, 6.0];
+        let coarse = [0.5f32, 1.5, 5.5];
+        let fine = [0.25f32, 1.9, 5.75];
+        let (mut t, mut d) = (Vec::new(), Vec::new());
+        merge_intervals(&starts, &ends, &coarse, &fine, &mut t, &mut d);
+        assert_eq!(t, vec![0.25, 0.5, 1.5, 1.9, 5.5, 5.75]);
+        // Segment [0, 2]: boundaries 0, 0.375, 1.0, 1.7, 2.
+        let want = [0.375f32, 0.625, 0.7, 0.3, 0.625, 0.375];
+        for (a, b) in d.iter().zip(want) {
+            assert!((a - b).abs() < 1e-6, "{d:?}");
+        }
+        let covered: f32 = d.iter().sum();
+        assert!((covered - 3.0).abs() < 1e-5, "covers the bins, not the gap: {covered}");
+    }
+
+    #[test]
+    fn bin_sampling_follows_weights_and_stays_in_bins() {
+        let starts = [0.0f32, 4.0, 9.0];
+        let ends = [1.0f32, 5.0, 10.0];
+        let weights = [0.0f32, 1.0, 3.0];
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let t = sample_bins(&starts, &ends, &weights, 4000, Some(&mut rng));
+        assert!(t.windows(2).all(|w| w[0] <= w[1]));
+        assert!(t.iter().all(|&x| (0.0..=1.0).contains(&x) || (4.0..=5.0).contains(&x) || (9.0..=10.0).contains(&x)));
+        let (b, c) = (t.iter().filter(|&&x| x >= 4.0 && x <= 5.0).count(), t.iter().filter(|&&x| x >= 9.0).count());
+        assert!((c as f32 / b as f32 - 3.0).abs() < 0.3, "{b} {c}");
+        let even = sample_bins::<rand_chacha::ChaCha8Rng>(&starts, &ends, &weights, 8, None);
+        assert_eq!(even.len(), 8);
+        assert!(sample_bins::<rand_chacha::ChaCha8Rng>(&[], &[], &[], 8, None).is_empty());
+    }
 
     #[test]
     fn importance_samples_follow_the_weights() {

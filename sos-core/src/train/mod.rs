@@ -2,6 +2,7 @@
 
 pub mod checkpoint;
 pub mod evaluate;
+pub mod memory;
 pub mod photometric;
 pub mod session;
 

@@ -6,7 +6,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rand::{Rng, SeedableRng};
 
 use crate::error::RunError;
-use crate::render::composite::RayGrad;
+use crate::render::composite::{RayColor, RayGrad};
 use crate::render::rays::RayBatch;
 use crate::render::renderer::render;
 use crate::train::session::Session;
@@ -33,6 +33,56 @@ pub fn psnr_of_mse(mse: f64) -> f64 {
     crate::metrics::psnr_from_mse(mse.max(1e-12))
 }
 
+/// MSE over a batch's rays and the per-ray gradients (`scale · (c − target)` per channel), with
+/// direct per-sample weight gradients from `weight_grads(ray)`.
+fn ray_mse_grads<'a>(
+    colors: &[RayColor],
+    targets: &[[f32; 3]],
+    scale: f32,
+    weight_grads: impl Fn(usize) -> &'a [f32],
+) -> (f64, Vec<RayGrad<'a>>) {
+    let mut mse = 0.0f64;
+    let grads = colors
+        .iter()
+        .zip(targets)
+        .enumerate()
+        .map(|(ray, (c, t))| {
+            let mut g = RayGrad { weights: weight_grads(ray), ..Default::default() };
+            for k in 0..3 {
+                let e = c.rgb[k] - t[k];
+                mse += (e * e) as f64;
+                g.rgb[k] = scale * e;
+            }
+            g
+        })
+        .collect();
+    (mse / (colors.len() * 3).max(1) as f64, grads)
+}
+
+/// Whether per-sample gradients are all finite.
+fn all_finite(g_sigma: &[f32], g_rgb: &[[f32; 3]]) -> bool {
+    g_sigma.iter().all(|g| g.is_finite()) && g_rgb.iter().all(|g| g.iter().all(|v| v.is_finite()))
+}
+
+/// Which rays of a batch rendered non-finite colours: a count and the first few as
+/// `view:col,row`.
+fn describe_bad_rays(fine: &[RayColor], coarse: Option<&[RayColor]>, pixels: &[(usize, u32, u32)]) -> String {
+    let bad = |c: &RayColor| !(c.rgb.iter().all(|v| v.is_finite()) && c.acc.is_finite());
+    let idx: Vec<usize> = (0..pixels.len())
+        .filter(|&i| bad(&fine[i]) || coarse.is_some_and(|c| bad(&c[i])))
+        .collect();
+    let first: Vec<String> = idx.iter().take(8).map(|&i| format!("{}:{},{}", pixels[i].0, pixels[i].1, pixels[i].2)).collect();
+    let views: std::collections::BTreeSet<usize> = pixels.iter().map(|p| p.0).collect();
+    format!(
+        "{} rays from views {:?}; {} rendered non-finite colours{}{}",
+        pixels.len(),
+        views.into_iter().take(16).collect::<Vec<_>>(),
+        idx.len(),
+        if first.is_empty() { "" } else { ", first (view:col,row): " },
+        first.join(" ")
+    )
+}
+
 /// Runs stage 1 from `session.step` to `train.steps`, checkpointing along the way.
 pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<StepStats, RunError> {
     let total = session.config.train.steps;
@@ -57,15 +107,19 @@ pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<S
         // A batch of random rays from random training views.
         let mut rays = RayBatch::default();
         let mut targets = Vec::with_capacity(n_rays);
+        let mut pixels = Vec::with_capacity(n_rays);
         for _ in 0..n_rays {
-            let v = &session.scene.views[session.scene.train[rng.gen_range(0..session.scene.train.len())]];
+            let vi = session.scene.train[rng.gen_range(0..session.scene.train.len())];
+            let v = &session.scene.views[vi];
             let (col, row) = (rng.gen_range(0..v.camera.width), rng.gen_range(0..v.camera.height));
             rays.push_pixel(&v.camera, col, row);
             targets.push(v.image.pixel(col as usize, row as usize));
+            pixels.push((vi, col, row));
         }
         let options = session.render_options(true);
         let mut r = render(session.field.as_ref(), session.render_context(), &rays, options, true, &mut rng);
         r.composite(&[], 0);
+        let mut coarse = r.coarse.take();
 
         let scale = 2.0 / (n_rays * 3) as f32;
         // DVGO's per-sample colour loss λ/N Σ_k w_k ‖c_k − C‖²: fog of the wrong colour is
@@ -85,45 +139,61 @@ pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<S
                 }
             }
         }
-        let mut mse = 0.0f64;
-        let grads: Vec<RayGrad> = r
-            .colors
-            .iter()
-            .zip(&targets)
-            .enumerate()
-            .map(|(ray, (c, t))| {
-                let mut g = RayGrad { weights: &g_weight[r.samples.range(ray)], ..Default::default() };
-                for k in 0..3 {
-                    let e = c.rgb[k] - t[k];
-                    mse += (e * e) as f64;
-                    g.rgb[k] = scale * e;
+        let (mse, grads) = ray_mse_grads(&r.colors, &targets, scale, |ray| &g_weight[r.samples.range(ray)]);
+        // The coarse (proposal) network of a hierarchical field gets its own MSE, as in NeRF.
+        let (coarse_mse, coarse_grads) = match &coarse {
+            Some(c) => ray_mse_grads(&c.colors, &targets, scale, |_| &[]),
+            None => (0.0, Vec::new()),
+        };
+        let mut finite = mse.is_finite() && coarse_mse.is_finite();
+        let timer = Instant::now();
+        let (mut t_cb, mut t_fb) = (0.0, 0.0);
+        if finite {
+            let (g_sigma, mut g_rgb, _) = r.composite_backward(&[], 0, &grads);
+            for (g, d) in g_rgb.iter_mut().zip(&g_rgb_direct) {
+                for j in 0..3 {
+                    g[j] += d[j];
                 }
-                g
-            })
-            .collect();
-        mse /= (n_rays * 3) as f64;
-        if !mse.is_finite() {
+            }
+            let coarse_g = coarse.as_ref().map(|c| c.composite_backward(&[], 0, &coarse_grads));
+            finite = all_finite(&g_sigma, &g_rgb)
+                && coarse_g.as_ref().map_or(true, |(gs, gc, _)| all_finite(gs, gc));
+            t_cb = timer.elapsed().as_secs_f64();
+            if finite {
+                let tape = r.tape.take();
+                session.field.backward(&r.samples.positions, &r.samples.directions, tape, &g_sigma, &g_rgb);
+                if let (Some(c), Some((gs, gc, _))) = (coarse.as_mut(), coarse_g) {
+                    let tape = c.tape.take();
+                    let (p, d) = (&c.samples.positions, &c.samples.directions);
+                    match session.field.coarse_mut() {
+                        Some(proposal) => proposal.backward(p, d, tape, &gs, &gc),
+                        None => session.field.backward(p, d, tape, &gs, &gc),
+                    }
+                }
+                t_fb = timer.elapsed().as_secs_f64();
+                session.field.regularize();
+                finite = session.field.gradients_finite();
+            }
+        }
+        if !finite {
+            session.field.discard_gradients();
             bad_steps += 1;
-            bar.println(format!("step {}: non-finite loss, step skipped", session.step));
+            bar.println(format!(
+                "stage 1 step {}: non-finite loss or gradient (mse {mse}, coarse mse {coarse_mse}), step skipped; batch: {}",
+                session.step,
+                describe_bad_rays(&r.colors, coarse.as_ref().map(|c| &c.colors[..]), &pixels)
+            ));
             if bad_steps >= MAX_BAD_STEPS {
-                return Err(RunError::Diverged(format!("{MAX_BAD_STEPS} non-finite losses in a row at step {}", session.step)));
+                return Err(RunError::Diverged(format!(
+                    "{MAX_BAD_STEPS} stage-1 steps in a row had a non-finite loss or gradient (last at step {}); \
+                     lower the field's learning rate or check the data for NaN pixels",
+                    session.step
+                )));
             }
             session.step += 1;
             continue;
         }
         bad_steps = 0;
-        let timer = Instant::now();
-        let (g_sigma, mut g_rgb, _) = r.composite_backward(&[], 0, &grads);
-        for (g, d) in g_rgb.iter_mut().zip(&g_rgb_direct) {
-            for j in 0..3 {
-                g[j] += d[j];
-            }
-        }
-        let t_cb = timer.elapsed().as_secs_f64();
-        let tape = r.tape.take();
-        session.field.backward(&r.samples.positions, &r.samples.directions, tape, &g_sigma, &g_rgb);
-        let t_fb = timer.elapsed().as_secs_f64();
-        session.field.regularize();
         let t_reg = timer.elapsed().as_secs_f64();
         let progress = session.step as f32 / total.max(1) as f32;
         let lr_factor = session.config.train.final_lr_factor.powf(progress);
@@ -165,7 +235,7 @@ pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<S
         }
     }
     bar.finish();
-    session.refresh_occupancy(0.0);
+    session.bake_occupancy();
     session.save_checkpoint()?;
     Ok(last)
 }

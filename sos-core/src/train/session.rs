@@ -61,6 +61,7 @@ impl Session {
 
     /// Builds a session from an already parsed config.
     pub fn from_config(config: RunConfig, config_dir: &Path) -> Result<Session, RunError> {
+        crate::train::memory::keep_freed_memory();
         let scene = config.scene.open(config_dir)?;
         scene.validate().map_err(|message| crate::plugin::dataset::DatasetError::Invalid {
             path: config_dir.to_path_buf(),
@@ -131,7 +132,7 @@ impl Session {
         let state = ckpt.section("field").ok_or_else(|| fail("has no field section".into()))?;
         self.field.load_state(state).map_err(fail)?;
         self.step = ckpt.meta.step;
-        self.refresh_occupancy(0.0);
+        self.bake_occupancy();
         Ok((ckpt, path))
     }
 
@@ -140,6 +141,15 @@ impl Session {
         if let Some(occ) = self.occupancy.as_mut() {
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(self.config.seed ^ self.step as u64);
             occ.update(self.field.as_ref(), &self.contraction, decay, &mut rng);
+        }
+    }
+
+    /// Rebuilds the occupancy grid from the field as it is now, with one cell of margin: the
+    /// grid a frozen field (stage 2, evaluation) skips empty space with.
+    pub fn bake_occupancy(&mut self) {
+        self.refresh_occupancy(0.0);
+        if let Some(occ) = self.occupancy.as_mut() {
+            occ.dilate();
         }
     }
 

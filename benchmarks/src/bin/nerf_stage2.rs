@@ -1,0 +1,222 @@
+//! Stage-2 steps of the `nerf` field (reference sizes) with and without skipping, from a
+//! stage-1 checkpoint of `configs/nerf_synthetic_small.toml`.
+//!
+//! `cargo run --release -p sos-benchmarks --bin nerf_stage2 -- speed [checkpoint] [steps]`
+//! times real stage-2 steps (`train_segmentation`: render, head, teacher, losses, backward)
+//! of 8 patches of 64x64 rays in these modes:
+//! - `all-skips`: occupancy grid baked from the frozen density (128³, one cell of margin),
+//!   early ray termination (transmittance 1e-4), weight threshold 1e-3, fine network alone on
+//!   the occupancy-skipped candidates (`hierarchical = false`, 192 candidates per ray);
+//! - `no-weight-threshold`: the same with the weight threshold off;
+//! - `all-skips-hierarchical`: every skip, but with the coarse network and 128 importance
+//!   samples kept;
+//! - `no-skipping`: the reference pipeline (coarse + fine, no occupancy, no termination, no
+//!   threshold) with ONE patch, as the reference's 41 s figure is for one patch (eight would
+//!   need about 9 GB for the head's inputs alone).
+//!
+//! `... nerf_stage2 -- quality [checkpoint] [steps]` trains stage 2 twice on the small scene
+//! (4 patches of 32x32 rays, same seeds) — once with every skip and once without any — and
+//! evaluates the masks of the held-out views under the same settings; it prints both mIoUs.
+//!
+//! Wall time depends on what else runs on the machine; each line also gives the process's CPU
+//! seconds per step and the load average.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use sos_core::config::RunConfig;
+use sos_core::segment::evaluate::evaluate_masks;
+use sos_core::segment::infer::MaskInference;
+use sos_core::segment::train::{train_segmentation, Segmenter};
+use sos_core::train::Session;
+
+use sos_plugins as _;
+
+/// Settings of one mode.
+struct Mode {
+    name: &'static str,
+    hierarchical: bool,
+    occupancy: bool,
+    early_stop: f32,
+    weight_threshold: f32,
+    patches: usize,
+    patch_size: u32,
+}
+
+const ALL_SKIPS: Mode = Mode {
+    name: "all-skips",
+    hierarchical: false,
+    occupancy: true,
+    early_stop: 1e-4,
+    weight_threshold: 1e-3,
+    patches: 8,
+    patch_size: 64,
+};
+
+fn config_text(mode: &Mode, steps: usize) -> String {
+    format!(
+        r#"
+name = "nerf-stage2-{name}"
+output_dir = "runs"
+seed = 0
+[scene]
+kind = "synthetic"
+rig = "object-centric"
+width = 160
+height = 120
+views = 40
+hold_out_every = 8
+[field]
+kind = "nerf"
+hierarchical = {hierarchical}
+[train]
+steps = 800
+samples_per_ray = 192
+early_stop = {early_stop}
+weight_threshold = 0.0
+occupancy = {occupancy}
+occupancy_resolution = 128
+occupancy_warmup = 0
+checkpoint_every = 0
+[render]
+chunk = 8192
+[segment]
+steps = {steps}
+patches = {patches}
+patch_size = {patch_size}
+weight_threshold = {weight_threshold}
+[masks]
+foreground = "focus"
+"#,
+        name = mode.name,
+        hierarchical = mode.hierarchical,
+        early_stop = mode.early_stop,
+        occupancy = mode.occupancy,
+        patches = mode.patches,
+        patch_size = mode.patch_size,
+        weight_threshold = mode.weight_threshold,
+    )
+}
+
+/// Process CPU seconds (user + system) from `/proc/self/stat`; 0 where unavailable.
+fn cpu_seconds() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else { return 0.0 };
+    // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
+    let rest = stat.rsplit(')').next().unwrap_or("");
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| fields.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    (ticks(11) + ticks(12)) / 100.0
+}
+
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg").map(|s| s.split_whitespace().next().unwrap_or("?").to_string()).unwrap_or_default()
+}
+
+fn open(mode: &Mode, steps: usize, checkpoint: &Path) -> Session {
+    let config = RunConfig::parse(&config_text(mode, steps), Path::new("nerf_stage2.toml")).expect("config parses");
+    let dir = std::env::temp_dir().join("sos-nerf-stage2");
+    let mut session = Session::from_config(config, &dir).expect("scene builds");
+    session.load_checkpoint(Some(checkpoint)).expect("stage-1 checkpoint of configs/nerf_synthetic_small.toml");
+    session
+}
+
+fn speed(checkpoint: &Path, steps: usize) {
+    let modes = [
+        ALL_SKIPS,
+        Mode { name: "no-weight-threshold", weight_threshold: 0.0, ..ALL_SKIPS },
+        Mode { name: "all-skips-hierarchical", hierarchical: true, ..ALL_SKIPS },
+        Mode {
+            name: "no-skipping",
+            hierarchical: true,
+            occupancy: false,
+            early_stop: 0.0,
+            weight_threshold: 0.0,
+            patches: 1,
+            ..ALL_SKIPS
+        },
+    ];
+    println!("nerf_stage2 speed: checkpoint {}, {steps} timed step(s) per mode after 1 warm-up", checkpoint.display());
+    println!("| mode | patches | rays | s/step (wall) | CPU s/step | head samples/ray | load avg |");
+    println!("|---|---|---|---|---|---|---|");
+    for mode in &modes {
+        let mut session = open(mode, 1, checkpoint);
+        if let Some(occ) = &session.occupancy {
+            eprintln!("{}: occupancy {:.1}% of {}³ cells", mode.name, 100.0 * occ.occupancy(), occ.resolution());
+        }
+        let mut seg = Segmenter::build(&session).expect("stage 2 builds");
+        session.config.segment.steps = 1;
+        train_segmentation(&mut session, &mut seg, false).expect("warm-up step");
+        let (mut wall, mut cpu, mut per_ray) = (Vec::new(), Vec::new(), 0.0);
+        for _ in 0..steps {
+            session.config.segment.steps = seg.step + 1;
+            let (t, c) = (Instant::now(), cpu_seconds());
+            let stats = train_segmentation(&mut session, &mut seg, false).expect("stage-2 step");
+            wall.push(t.elapsed().as_secs_f64());
+            cpu.push(cpu_seconds() - c);
+            per_ray = stats.samples_per_ray;
+        }
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+        let rays = mode.patches * (mode.patch_size * mode.patch_size) as usize;
+        println!(
+            "| {} | {} | {} | {:.2} | {:.2} | {:.1} | {} |",
+            mode.name,
+            mode.patches,
+            rays,
+            mean(&wall),
+            mean(&cpu),
+            per_ray,
+            load_average()
+        );
+    }
+}
+
+fn quality(checkpoint: &Path, steps: usize) {
+    let small = |m: Mode| Mode { patches: 4, patch_size: 32, ..m };
+    let modes = [
+        small(ALL_SKIPS),
+        small(Mode { name: "no-skipping", hierarchical: true, occupancy: false, early_stop: 0.0, weight_threshold: 0.0, ..ALL_SKIPS }),
+    ];
+    println!("nerf_stage2 quality: checkpoint {}, {steps} stage-2 steps of 4 patches of 32x32 rays per mode", checkpoint.display());
+    println!("| mode | train s | masks s | ARI | IoU BG | IoU FG | mIoU | PSNR |");
+    println!("|---|---|---|---|---|---|---|---|");
+    for mode in modes {
+        let mut session = open(&mode, steps, checkpoint);
+        let mut seg = Segmenter::build(&session).expect("stage 2 builds");
+        let t = Instant::now();
+        train_segmentation(&mut session, &mut seg, false).expect("stage 2 trains");
+        let train_s = t.elapsed().as_secs_f64();
+        let inference = MaskInference::new(&session, &seg.head, Some(seg.teacher.extractor())).expect("inference");
+        let eval = evaluate_masks(&session, &inference, false).expect("masks");
+        let iou = eval.segmentation.iou();
+        let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.4}"));
+        println!(
+            "| {} | {:.0} | {:.0} | {} | {} | {} | {} | {} |",
+            mode.name,
+            train_s,
+            eval.seconds,
+            f(eval.segmentation.mean_ari()),
+            f(iou.iou_bg),
+            f(iou.iou_fg),
+            f(iou.miou),
+            eval.image.mean_psnr().map_or("-".into(), |p| format!("{p:.2}"))
+        );
+    }
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let what = args.get(1).map(String::as_str).unwrap_or("speed");
+    let checkpoint =
+        args.get(2).map(PathBuf::from).unwrap_or_else(|| PathBuf::from("runs/nerf-synthetic-small/checkpoint.bin"));
+    let steps: Option<usize> = args.get(3).and_then(|s| s.parse().ok());
+    let threads = std::env::var("RAYON_NUM_THREADS").ok().and_then(|s| s.parse().ok()).unwrap_or(2);
+    rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().expect("rayon pool");
+    match what {
+        "speed" => speed(&checkpoint, steps.unwrap_or(2)),
+        "quality" => quality(&checkpoint, steps.unwrap_or(100)),
+        other => {
+            eprintln!("unknown mode `{other}`: use `speed` or `quality`");
+            std::process::exit(2);
+        }
+    }
+}

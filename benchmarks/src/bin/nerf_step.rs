@@ -1,0 +1,406 @@
+//! One stage-1 step of the `nerf` field at the reference's sizes (1024 rays, 64 coarse + 128
+//! importance samples, 8 x 256 trunks, separate coarse and fine networks, no skipping), and
+//! the dense-layer throughput of that step against bare `gemm` calls on the same shapes, timed
+//! alternately in the same run.
+//!
+//! The step is the real one: the renderer's hierarchical pass, compositing, MSE on coarse and
+//! fine colours, compositing backward, both networks' backward passes and Adam. Each network's
+//! forward, backward and Adam step are timed by a wrapper; their GEMM work is counted from the
+//! actual sample counts. The bare baseline replays every GEMM of those passes (same m, n, k,
+//! same transposes) through `gemm` directly, once with the full batch as rows and once in the
+//! networks' row blocks, and the faster of the two is the reference rate.
+//!
+//! `cargo run --release -p sos-benchmarks --bin nerf_step [repeats]`; threads: `RAYON_NUM_THREADS`
+//! (default 2).
+
+use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+
+use gemm::Parallelism;
+use rand::{Rng, SeedableRng};
+use sos_core::camera::Vec3;
+use sos_core::config::RunConfig;
+use sos_core::nn::Linear;
+use sos_core::plugin::field::Hierarchical;
+use sos_core::plugin::{FieldTape, RadianceField};
+use sos_core::render::composite::{RayColor, RayGrad};
+use sos_core::render::contraction::Contraction;
+use sos_core::render::rays::RayBatch;
+use sos_core::render::renderer::render;
+use sos_core::train::Session;
+use sos_plugins::nerf::{network::CHUNK, NerfConfig, NerfMlp, NerfNet};
+
+const CONFIG: &str = r#"
+name = "nerf-step"
+output_dir = "runs"
+[scene]
+kind = "synthetic"
+rig = "object-centric"
+width = 200
+height = 150
+views = 24
+[field]
+kind = "nerf"
+[train]
+rays_per_step = 1024
+occupancy = false
+early_stop = 0.0
+weight_threshold = 0.0
+sample_color_weight = 0.0
+[segment]
+steps = 0
+"#;
+
+/// Time spent in one network's passes since the last [`Stats::take`].
+#[derive(Default)]
+struct Stats {
+    forward_ns: AtomicU64,
+    backward_ns: AtomicU64,
+    step_ns: AtomicU64,
+    /// Points of the last recorded forward pass.
+    last_n: AtomicU64,
+}
+
+impl Stats {
+    /// (forward, backward, step) seconds, reset to zero.
+    fn take(&self) -> [f64; 3] {
+        [&self.forward_ns, &self.backward_ns, &self.step_ns].map(|a| a.swap(0, Ordering::Relaxed) as f64 * 1e-9)
+    }
+}
+
+/// A network whose forward, backward and step are timed.
+struct Timed {
+    net: NerfNet,
+    stats: Arc<Stats>,
+}
+
+fn timed<T>(acc: &AtomicU64, f: impl FnOnce() -> T) -> T {
+    let t = Instant::now();
+    let out = f();
+    acc.fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
+    out
+}
+
+impl RadianceField for Timed {
+    fn density(&self, p: &[Vec3], d: &mut [f32]) {
+        self.net.density(p, d)
+    }
+    fn forward(&self, p: &[Vec3], dirs: &[Vec3], d: &mut [f32], c: &mut [[f32; 3]], record: bool) -> FieldTape {
+        if record {
+            self.stats.last_n.store(p.len() as u64, Ordering::Relaxed);
+        }
+        timed(&self.stats.forward_ns, || self.net.forward(p, dirs, d, c, record))
+    }
+    fn backward(&mut self, p: &[Vec3], dirs: &[Vec3], tape: FieldTape, gd: &[f32], gc: &[[f32; 3]]) {
+        let t = Instant::now();
+        self.net.backward(p, dirs, tape, gd, gc);
+        self.stats.backward_ns.fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
+    }
+    fn step(&mut self, lr_factor: f32) {
+        let t = Instant::now();
+        self.net.step(lr_factor);
+        self.stats.step_ns.fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
+    }
+    fn seg_input_dim(&self) -> usize {
+        self.net.seg_input_dim()
+    }
+    fn seg_input(&self, p: &[Vec3], out: &mut [f32]) {
+        self.net.seg_input(p, out)
+    }
+    fn save_state(&self) -> Vec<u8> {
+        self.net.save_state()
+    }
+    fn load_state(&mut self, b: &[u8]) -> Result<(), String> {
+        self.net.load_state(b)
+    }
+    fn num_parameters(&self) -> usize {
+        self.net.num_parameters()
+    }
+}
+
+/// Coarse + fine timed networks with the reference's hierarchical sampling.
+struct Pair {
+    fine: Timed,
+    coarse: Timed,
+    h: Hierarchical,
+}
+
+impl RadianceField for Pair {
+    fn density(&self, p: &[Vec3], d: &mut [f32]) {
+        self.fine.density(p, d)
+    }
+    fn forward(&self, p: &[Vec3], dirs: &[Vec3], d: &mut [f32], c: &mut [[f32; 3]], record: bool) -> FieldTape {
+        self.fine.forward(p, dirs, d, c, record)
+    }
+    fn backward(&mut self, p: &[Vec3], dirs: &[Vec3], tape: FieldTape, gd: &[f32], gc: &[[f32; 3]]) {
+        self.fine.backward(p, dirs, tape, gd, gc)
+    }
+    fn step(&mut self, lr_factor: f32) {
+        self.fine.step(lr_factor);
+        self.coarse.step(lr_factor);
+    }
+    fn hierarchical(&self) -> Option<Hierarchical> {
+        Some(self.h)
+    }
+    fn coarse(&self) -> Option<&dyn RadianceField> {
+        Some(&self.coarse)
+    }
+    fn coarse_mut(&mut self) -> Option<&mut dyn RadianceField> {
+        Some(&mut self.coarse)
+    }
+    fn seg_input_dim(&self) -> usize {
+        self.fine.seg_input_dim()
+    }
+    fn seg_input(&self, p: &[Vec3], out: &mut [f32]) {
+        self.fine.seg_input(p, out)
+    }
+    fn save_state(&self) -> Vec<u8> {
+        Vec::new()
+    }
+    fn load_state(&mut self, _: &[u8]) -> Result<(), String> {
+        Ok(())
+    }
+    fn num_parameters(&self) -> usize {
+        self.fine.num_parameters() + self.coarse.num_parameters()
+    }
+}
+
+/// One GEMM `[m, k] · [k, n]` with operand (column, row) strides and whether it accumulates.
+#[derive(Clone, Copy)]
+struct Gemm {
+    m: usize,
+    n: usize,
+    k: usize,
+    lhs: (usize, usize),
+    rhs: (usize, usize),
+    accumulate: bool,
+}
+
+impl Gemm {
+    fn flops(&self) -> f64 {
+        2.0 * (self.m * self.n * self.k) as f64
+    }
+}
+
+/// Every GEMM of one forward + backward of `mlp` over `rows` points, in the order the
+/// network runs them (see `NerfMlp::forward`/`backward`): per input block of each layer, the
+/// forward product, the weight gradient, and the input gradient where one is needed.
+fn network_gemms(mlp: &NerfMlp, rows: usize) -> Vec<Gemm> {
+    let mut out = Vec::new();
+    // (layer, input block widths, which blocks need ∂x)
+    let mut layers: Vec<(&Linear, Vec<usize>, Vec<bool>)> = Vec::new();
+    let pe = mlp.pe_dim();
+    for (l, layer) in mlp.trunk.layers.iter().enumerate() {
+        if l == 0 {
+            layers.push((layer, vec![pe], vec![false]));
+        } else if mlp.trunk.skip_at == Some(l) {
+            layers.push((layer, vec![pe, layer.in_dim - pe], vec![false, true]));
+        } else {
+            layers.push((layer, vec![layer.in_dim], vec![true]));
+        }
+    }
+    let w = mlp.width();
+    layers.push((&mlp.sigma, vec![w], vec![true]));
+    layers.push((&mlp.feature, vec![w], vec![true]));
+    layers.push((&mlp.view, vec![w, mlp.view.in_dim - w], vec![true, false]));
+    layers.push((&mlp.rgb, vec![mlp.rgb.in_dim], vec![true]));
+    for (layer, blocks, need_dx) in layers {
+        let o = layer.out_dim;
+        for (&i, &dx) in blocks.iter().zip(&need_dx) {
+            // y[rows, o] (+)= x[rows, i] · W[i, o]
+            out.push(Gemm { m: rows, n: o, k: i, lhs: (1, i), rhs: (1, o), accumulate: false });
+            // ∂W[i, o] += xᵀ · g
+            out.push(Gemm { m: i, n: o, k: rows, lhs: (i, 1), rhs: (1, o), accumulate: true });
+            if dx {
+                // ∂x[rows, i] = g · Wᵀ
+                out.push(Gemm { m: rows, n: i, k: o, lhs: (1, o), rhs: (o, 1), accumulate: false });
+            }
+        }
+    }
+    out
+}
+
+#[allow(unsafe_code)]
+fn bare(g: &Gemm, dst: &mut [f32], lhs: &[f32], rhs: &[f32]) {
+    assert!(dst.len() >= g.m * g.n);
+    assert!((g.m - 1) * g.lhs.1 + (g.k - 1) * g.lhs.0 < lhs.len());
+    assert!((g.k - 1) * g.rhs.1 + (g.n - 1) * g.rhs.0 < rhs.len());
+    // SAFETY: the asserts bound every element gemm reads in `lhs` and `rhs`; `dst` is a
+    // distinct `&mut` slice written densely row-major (strides 1, n).
+    unsafe {
+        gemm::gemm(
+            g.m,
+            g.n,
+            g.k,
+            dst.as_mut_ptr(),
+            1,
+            g.n as isize,
+            g.accumulate,
+            lhs.as_ptr(),
+            g.lhs.0 as isize,
+            g.lhs.1 as isize,
+            rhs.as_ptr(),
+            g.rhs.0 as isize,
+            g.rhs.1 as isize,
+            1.0,
+            1.0,
+            false,
+            false,
+            false,
+            Parallelism::Rayon(0),
+        );
+    }
+}
+
+/// Runs a list of GEMMs on scratch buffers; returns seconds.
+fn run_bare(gemms: &[Gemm], scratch: &mut [Vec<f32>; 3]) -> f64 {
+    let t = Instant::now();
+    for g in gemms {
+        let [dst, lhs, rhs] = scratch;
+        bare(g, dst, lhs, rhs);
+    }
+    t.elapsed().as_secs_f64()
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// The same GEMMs split into the networks' row blocks.
+fn blocked(mlp: &NerfMlp, rows: usize) -> Vec<Gemm> {
+    let mut out = Vec::new();
+    let mut left = rows;
+    while left > 0 {
+        let r = left.min(CHUNK);
+        out.extend(network_gemms(mlp, r));
+        left -= r;
+    }
+    out
+}
+
+fn main() {
+    let repeats: usize = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(3);
+    let threads = std::env::var("RAYON_NUM_THREADS").ok().and_then(|s| s.parse().ok()).unwrap_or(2);
+    rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().expect("rayon pool");
+    let config = RunConfig::parse(CONFIG, Path::new("nerf_step.toml")).expect("built-in config parses");
+    let dir = std::env::temp_dir().join("sos-nerf-step");
+    let mut session = Session::from_config(config, &dir).expect("synthetic scene builds");
+    let nerf = NerfConfig::default();
+    let contraction = Contraction::new(&session.scene.extent);
+    let shape = nerf.shape();
+    let (fine_stats, coarse_stats) = (Arc::new(Stats::default()), Arc::new(Stats::default()));
+    let fine_net = NerfNet::new(shape, nerf.density_activation, nerf.lr, contraction, 1);
+    let mlp_shape = fine_net.mlp.clone();
+    let pair = Pair {
+        fine: Timed { net: fine_net, stats: fine_stats.clone() },
+        coarse: Timed {
+            net: NerfNet::new(shape, nerf.density_activation, nerf.lr, contraction, 2),
+            stats: coarse_stats.clone(),
+        },
+        h: Hierarchical { coarse_samples: nerf.coarse_samples, fine_samples: nerf.fine_samples },
+    };
+    session.field = Box::new(pair);
+    let n_rays = session.config.train.rays_per_step;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+
+    // One real stage-1 step; returns (seconds, fine MSE).
+    let mut step = |session: &mut Session| -> (f64, f64) {
+        let t0 = Instant::now();
+        let mut rays = RayBatch::default();
+        let mut targets = Vec::new();
+        for _ in 0..n_rays {
+            let v = &session.scene.views[session.scene.train[rng.gen_range(0..session.scene.train.len())]];
+            let (c, r) = (rng.gen_range(0..v.camera.width), rng.gen_range(0..v.camera.height));
+            rays.push_pixel(&v.camera, c, r);
+            targets.push(v.image.pixel(c as usize, r as usize));
+        }
+        let options = session.render_options(true);
+        let mut r = render(session.field.as_ref(), session.render_context(), &rays, options, true, &mut rng);
+        r.composite(&[], 0);
+        let mut coarse = r.coarse.take().expect("hierarchical pass");
+        let scale = 2.0 / (n_rays * 3) as f32;
+        let grads = |colors: &[RayColor], mse: &mut f64| -> Vec<RayGrad<'static>> {
+            colors
+                .iter()
+                .zip(&targets)
+                .map(|(c, t)| {
+                    let mut g = RayGrad::default();
+                    for k in 0..3 {
+                        let e = c.rgb[k] - t[k];
+                        *mse += (e * e) as f64;
+                        g.rgb[k] = scale * e;
+                    }
+                    g
+                })
+                .collect()
+        };
+        let mut mse = 0.0;
+        let gf = grads(&r.colors, &mut mse);
+        let gc = grads(&coarse.colors, &mut 0.0);
+        let (gs, grgb, _) = r.composite_backward(&[], 0, &gf);
+        let (cgs, cgrgb, _) = coarse.composite_backward(&[], 0, &gc);
+        let tape = r.tape.take();
+        session.field.backward(&r.samples.positions, &r.samples.directions, tape, &gs, &grgb);
+        let tape = coarse.tape.take();
+        let (p, d) = (&coarse.samples.positions, &coarse.samples.directions);
+        session.field.coarse_mut().expect("coarse network").backward(p, d, tape, &cgs, &cgrgb);
+        session.field.step(1.0);
+        (t0.elapsed().as_secs_f64(), mse / (n_rays * 3) as f64)
+    };
+
+    // Warm-up (also fixes the sample counts: every ray crosses the room, so they are constant).
+    let (_, first_mse) = step(&mut session);
+    fine_stats.take();
+    coarse_stats.take();
+    let n_fine = fine_stats.last_n.load(Ordering::Relaxed) as usize;
+    let n_coarse = coarse_stats.last_n.load(Ordering::Relaxed) as usize;
+    let full: Vec<Gemm> = network_gemms(&mlp_shape, n_fine).into_iter().chain(network_gemms(&mlp_shape, n_coarse)).collect();
+    let blocks: Vec<Gemm> = blocked(&mlp_shape, n_fine).into_iter().chain(blocked(&mlp_shape, n_coarse)).collect();
+    let flops: f64 = full.iter().map(Gemm::flops).sum();
+    let biggest = n_fine.max(n_coarse) * 512;
+    let mut scratch = [vec![0.01f32; biggest], vec![0.02f32; biggest], vec![0.03f32; biggest]];
+    run_bare(&full, &mut scratch);
+    run_bare(&blocks, &mut scratch);
+
+    let (mut t_step, mut t_dense, mut t_full, mut t_blocks) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut parts = [0.0f64; 6];
+    let mut last_mse = first_mse;
+    for _ in 0..repeats {
+        let (t, mse) = step(&mut session);
+        last_mse = mse;
+        let (f, c) = (fine_stats.take(), coarse_stats.take());
+        for k in 0..3 {
+            parts[k] += f[k] / repeats as f64;
+            parts[3 + k] += c[k] / repeats as f64;
+        }
+        t_step.push(t);
+        t_dense.push(f.iter().sum::<f64>() + c.iter().sum::<f64>());
+        t_full.push(run_bare(&full, &mut scratch));
+        t_blocks.push(run_bare(&blocks, &mut scratch));
+    }
+    let (step_s, dense_s, full_s, blocks_s) = (median(t_step), median(t_dense), median(t_full), median(t_blocks));
+    let bare_s = full_s.min(blocks_s);
+    println!(
+        "nerf_step: {n_rays} rays, {} coarse + {} importance samples, 2 x NeRF MLP (8x256, skip 5, view 128), {threads} rayon threads, median of {repeats} after 1 warm-up",
+        64, 128
+    );
+    println!("samples: fine {n_fine} ({:.0}/ray), coarse {n_coarse} ({:.0}/ray)", n_fine as f64 / n_rays as f64, n_coarse as f64 / n_rays as f64);
+    println!("full stage-1 step: {:.2} s", step_s);
+    println!(
+        "  fine  forward {:.2} s  backward {:.2} s  adam {:.3} s",
+        parts[0], parts[1], parts[2]
+    );
+    println!(
+        "  coarse forward {:.2} s  backward {:.2} s  adam {:.3} s",
+        parts[3], parts[4], parts[5]
+    );
+    println!("GEMM work of the networks per step: {:.1} GFLOP", flops / 1e9);
+    println!("networks (fwd+bwd+adam): {:.2} s  {:.1} GFLOP/s", dense_s, flops / dense_s / 1e9);
+    println!("bare GEMMs, full batch : {:.2} s  {:.1} GFLOP/s", full_s, flops / full_s / 1e9);
+    println!("bare GEMMs, row blocks : {:.2} s  {:.1} GFLOP/s", blocks_s, flops / blocks_s / 1e9);
+    println!("ratio networks / best bare throughput: {:.1}%", 100.0 * bare_s / dense_s);
+    println!("(fine MSE {first_mse:.4} at the warm-up step, {last_mse:.4} at the last)");
+}

@@ -1,0 +1,361 @@
+//! The runtime of the `nerf` field: a fine network and, for hierarchical sampling, a separate
+//! coarse (proposal) network, each a [`NerfMlp`] with its own Adam state.
+
+use std::any::Any;
+
+use rand::SeedableRng;
+use sos_core::camera::Vec3;
+use sos_core::nn::{Adam, Param};
+use sos_core::plugin::field::Hierarchical;
+use sos_core::plugin::{FieldTape, RadianceField};
+use sos_core::render::contraction::Contraction;
+
+use super::network::{DensityActivation, NerfMlp, NerfShape, NerfTape};
+use super::NerfConfig;
+
+/// One network of the `nerf` field as a field in its own right (the coarse network is handed
+/// to the renderer this way).
+pub struct NerfNet {
+    /// The MLP.
+    pub mlp: NerfMlp,
+    adam: Adam,
+    contraction: Contraction,
+}
+
+/// Network input of world points: the scene's unit-cube mapping, scaled to `[−1, 1]³`.
+pub fn normalised_coords(contraction: &Contraction, positions: &[Vec3]) -> Vec<f32> {
+    let mut out = Vec::with_capacity(positions.len() * 3);
+    for p in positions {
+        let u = contraction.to_unit(*p);
+        out.extend(u.iter().map(|v| 2.0 * v - 1.0));
+    }
+    out
+}
+
+impl NerfNet {
+    /// A freshly initialised network.
+    pub fn new(shape: NerfShape, act: DensityActivation, lr: f32, contraction: Contraction, seed: u64) -> Self {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        NerfNet { mlp: NerfMlp::new(shape, act, &mut rng), adam: Adam::new(lr), contraction }
+    }
+
+    fn coords(&self, positions: &[Vec3]) -> Vec<f32> {
+        normalised_coords(&self.contraction, positions)
+    }
+
+    /// Applies and clears the accumulated gradients.
+    pub fn apply_gradients(&mut self, lr_factor: f32) {
+        let mut params = self.mlp.params_mut();
+        self.adam.step(&mut params, lr_factor);
+    }
+}
+
+/// Downcasts a field tape to the network's tape.
+fn nerf_tape(tape: FieldTape) -> Option<Box<NerfTape>> {
+    tape.and_then(|t| (t as Box<dyn Any>).downcast::<NerfTape>().ok())
+}
+
+impl RadianceField for NerfNet {
+    fn density(&self, positions: &[Vec3], density: &mut [f32]) {
+        self.mlp.density(&self.coords(positions), density);
+    }
+
+    fn forward(
+        &self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        density: &mut [f32],
+        rgb: &mut [[f32; 3]],
+        record: bool,
+    ) -> FieldTape {
+        let tape = self.mlp.forward(&self.coords(positions), directions, density, rgb, record);
+        tape.map(|t| Box::new(t) as Box<dyn Any + Send + Sync>)
+    }
+
+    fn backward(
+        &mut self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        tape: FieldTape,
+        grad_density: &[f32],
+        grad_rgb: &[[f32; 3]],
+    ) {
+        let tape = match nerf_tape(tape) {
+            Some(t) => t,
+            None => {
+                // Forward ran without recording: recompute it with a tape.
+                let n = positions.len();
+                let (mut d, mut c) = (vec![0.0; n], vec![[0.0; 3]; n]);
+                let coords = self.coords(positions);
+                Box::new(self.mlp.forward(&coords, directions, &mut d, &mut c, true).expect("recording forward"))
+            }
+        };
+        self.mlp.backward(&tape, grad_density, grad_rgb);
+    }
+
+    fn step(&mut self, lr_factor: f32) {
+        self.apply_gradients(lr_factor);
+    }
+
+    fn gradients_finite(&self) -> bool {
+        self.mlp.gradients_finite()
+    }
+
+    fn discard_gradients(&mut self) {
+        self.mlp.zero_grad();
+    }
+
+    fn seg_input_dim(&self) -> usize {
+        self.mlp.width() + self.mlp.pe_dim()
+    }
+
+    fn seg_input(&self, positions: &[Vec3], out: &mut [f32]) {
+        self.mlp.features(&self.coords(positions), out);
+    }
+
+    fn save_state(&self) -> Vec<u8> {
+        write_params(&[&self.mlp])
+    }
+
+    fn load_state(&mut self, bytes: &[u8]) -> Result<(), String> {
+        read_params(bytes, &mut [&mut self.mlp])
+    }
+
+    fn num_parameters(&self) -> usize {
+        self.mlp.num_parameters()
+    }
+}
+
+/// Writes networks as: `u64` header length, a JSON header of parameter sizes, then every
+/// parameter's values as little-endian `f32` in [`NerfMlp::params`] order.
+pub fn write_params(nets: &[&NerfMlp]) -> Vec<u8> {
+    let sizes: Vec<Vec<usize>> = nets.iter().map(|m| m.params().iter().map(|p| p.len()).collect()).collect();
+    let header = serde_json::json!({ "format": "nerf-params-1", "sizes": sizes }).to_string();
+    let total: usize = sizes.iter().flatten().sum();
+    let mut out = Vec::with_capacity(8 + header.len() + 4 * total);
+    out.extend_from_slice(&(header.len() as u64).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    for m in nets {
+        for p in m.params() {
+            for v in &p.value {
+                out.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+    }
+    out
+}
+
+/// Restores networks written by [`write_params`]; the sizes must match the configured networks.
+pub fn read_params(bytes: &[u8], nets: &mut [&mut NerfMlp]) -> Result<(), String> {
+    let truncated = || "nerf state is truncated".to_string();
+    let len = u64::from_le_bytes(bytes.get(..8).ok_or_else(truncated)?.try_into().map_err(|_| truncated())?) as usize;
+    let header: serde_json::Value =
+        serde_json::from_slice(bytes.get(8..8usize.saturating_add(len)).ok_or_else(truncated)?)
+            .map_err(|e| format!("nerf state header: {e}"))?;
+    let sizes: Vec<Vec<usize>> =
+        serde_json::from_value(header["sizes"].clone()).map_err(|e| format!("nerf state header: {e}"))?;
+    let want: Vec<Vec<usize>> = nets.iter().map(|m| m.params().iter().map(|p| p.len()).collect()).collect();
+    if sizes != want {
+        return Err(format!(
+            "nerf state holds {} network(s) with {} parameters but the config builds {} with {} \
+             (were depth, width, frequencies or `hierarchical` changed?)",
+            sizes.len(),
+            sizes.iter().flatten().sum::<usize>(),
+            want.len(),
+            want.iter().flatten().sum::<usize>()
+        ));
+    }
+    let mut body = &bytes[8 + len..];
+    let total: usize = sizes.iter().flatten().sum();
+    if body.len() != 4 * total {
+        return Err(truncated());
+    }
+    for m in nets.iter_mut() {
+        for p in m.params_mut() {
+            let (chunk, rest) = body.split_at(4 * p.len());
+            for (v, b) in p.value.iter_mut().zip(chunk.chunks_exact(4)) {
+                *v = f32::from_le_bytes(b.try_into().expect("4 bytes"));
+            }
+            Param::zero_grad(p);
+            body = rest;
+        }
+    }
+    Ok(())
+}
+
+/// The `nerf` field (see the module docs of [`super`]).
+pub struct NerfField {
+    config: NerfConfig,
+    fine: NerfNet,
+    coarse: NerfNet,
+}
+
+impl NerfField {
+    /// Builds both networks (the coarse one is kept even with `hierarchical = false`, so that
+    /// checkpoints load either way and the switch is a pure ablation).
+    pub fn new(config: NerfConfig, contraction: Contraction, seed: u64) -> Self {
+        let shape = config.shape();
+        let act = config.density_activation;
+        NerfField {
+            fine: NerfNet::new(shape, act, config.lr, contraction, seed ^ 0xF1),
+            coarse: NerfNet::new(shape, act, config.lr, contraction, seed ^ 0xC0),
+            config,
+        }
+    }
+
+    /// The fine network.
+    pub fn fine(&self) -> &NerfNet {
+        &self.fine
+    }
+
+    /// Both networks, fine first.
+    pub fn networks_mut(&mut self) -> [&mut NerfNet; 2] {
+        [&mut self.fine, &mut self.coarse]
+    }
+}
+
+impl RadianceField for NerfField {
+    fn density(&self, positions: &[Vec3], density: &mut [f32]) {
+        self.fine.density(positions, density);
+    }
+
+    fn forward(
+        &self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        density: &mut [f32],
+        rgb: &mut [[f32; 3]],
+        record: bool,
+    ) -> FieldTape {
+        self.fine.forward(positions, directions, density, rgb, record)
+    }
+
+    fn backward(
+        &mut self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        tape: FieldTape,
+        grad_density: &[f32],
+        grad_rgb: &[[f32; 3]],
+    ) {
+        self.fine.backward(positions, directions, tape, grad_density, grad_rgb);
+    }
+
+    fn step(&mut self, lr_factor: f32) {
+        self.fine.apply_gradients(lr_factor);
+        if self.config.hierarchical {
+            self.coarse.apply_gradients(lr_factor);
+        }
+    }
+
+    fn gradients_finite(&self) -> bool {
+        self.fine.gradients_finite() && self.coarse.gradients_finite()
+    }
+
+    fn discard_gradients(&mut self) {
+        self.fine.discard_gradients();
+        self.coarse.discard_gradients();
+    }
+
+    fn hierarchical(&self) -> Option<Hierarchical> {
+        self.config.hierarchical.then_some(Hierarchical {
+            coarse_samples: self.config.coarse_samples,
+            fine_samples: self.config.fine_samples,
+        })
+    }
+
+    fn coarse(&self) -> Option<&dyn RadianceField> {
+        self.config.hierarchical.then_some(&self.coarse as &dyn RadianceField)
+    }
+
+    fn coarse_mut(&mut self) -> Option<&mut dyn RadianceField> {
+        if self.config.hierarchical {
+            Some(&mut self.coarse)
+        } else {
+            None
+        }
+    }
+
+    fn seg_input_dim(&self) -> usize {
+        self.fine.seg_input_dim()
+    }
+
+    fn seg_input(&self, positions: &[Vec3], out: &mut [f32]) {
+        self.fine.seg_input(positions, out);
+    }
+
+    fn save_state(&self) -> Vec<u8> {
+        write_params(&[&self.fine.mlp, &self.coarse.mlp])
+    }
+
+    fn load_state(&mut self, bytes: &[u8]) -> Result<(), String> {
+        read_params(bytes, &mut [&mut self.fine.mlp, &mut self.coarse.mlp])
+    }
+
+    fn num_parameters(&self) -> usize {
+        self.fine.num_parameters() + if self.config.hierarchical { self.coarse.num_parameters() } else { 0 }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use sos_core::scene::SceneExtent;
+
+    fn tiny_config() -> NerfConfig {
+        NerfConfig { depth: 3, width: 8, skip: 2, view_width: 4, pos_frequencies: 2, dir_frequencies: 1, ..Default::default() }
+    }
+
+    fn field(seed: u64) -> NerfField {
+        let extent = SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] };
+        NerfField::new(tiny_config(), Contraction::new(&extent), seed)
+    }
+
+    #[test]
+    fn state_round_trips_and_rejects_other_shapes() {
+        let a = field(1);
+        let mut b = field(2);
+        let p = vec![[0.1, 0.2, -0.3], [0.5, -0.5, 0.0]];
+        let dirs = vec![[0.0, 0.0, 1.0]; 2];
+        let eval = |f: &NerfField| {
+            let (mut d, mut c) = (vec![0.0; 2], vec![[0.0; 3]; 2]);
+            f.forward(&p, &dirs, &mut d, &mut c, false);
+            (d, c)
+        };
+        assert_ne!(eval(&a).1, eval(&b).1);
+        let bytes = a.save_state();
+        b.load_state(&bytes).unwrap();
+        assert_eq!(eval(&a), eval(&b));
+        assert_eq!(b.save_state(), bytes);
+        assert_eq!(a.coarse.mlp, b.coarse.mlp);
+        assert!(b.load_state(&bytes[..bytes.len() - 4]).is_err());
+        let extent = SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] };
+        let mut wide = NerfField::new(NerfConfig { width: 9, ..tiny_config() }, Contraction::new(&extent), 0);
+        let err = wide.load_state(&bytes).unwrap_err();
+        assert!(err.contains("width"), "{err}");
+    }
+
+    #[test]
+    fn segmentation_input_is_trunk_features_then_encoding() {
+        let f = field(3);
+        assert_eq!(f.seg_input_dim(), 8 + 3 * 5);
+        let reference = NerfField::new(NerfConfig::default(), Contraction::new(&SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] }), 0);
+        assert_eq!(reference.seg_input_dim(), 319, "the reference head is 319 -> 128 -> 2");
+        let mut out = vec![0.0; 2 * f.seg_input_dim()];
+        f.seg_input(&[[0.5, 0.0, 0.0], [0.0, 0.5, 0.0]], &mut out);
+        // Coordinates in [−1, 1]³: x = 0.5 maps to 0.5.
+        assert!((out[8] - 0.5).abs() < 1e-6);
+        assert!(out[..8].iter().all(|&v| v >= 0.0), "trunk features are post-ReLU");
+    }
+
+    #[test]
+    fn hierarchical_switch_hands_out_the_coarse_network() {
+        let mut f = field(0);
+        assert_eq!(f.hierarchical(), Some(Hierarchical { coarse_samples: 64, fine_samples: 128 }));
+        assert!(f.coarse().is_some() && f.coarse_mut().is_some());
+        let n_both = f.num_parameters();
+        f.config.hierarchical = false;
+        assert!(f.hierarchical().is_none() && f.coarse().is_none());
+        assert_eq!(2 * f.num_parameters(), n_both);
+    }
+}

@@ -1,0 +1,191 @@
+//! `nerf++`: NeRF++ for unbounded scenes. The scene's foreground sphere (`SceneExtent::
+//! Unbounded`: centre `c`, radius `R`, chosen by the dataset so that every camera lies inside)
+//! is normalised to the unit sphere, `x = (p − c) / R`. A foreground NeRF MLP models `|x| ≤ 1`;
+//! outside, a background NeRF MLP sees the inverted-sphere parametrisation
+//! `(x / r, 1 / r)` with `r = |x|` (a bounded 4-D input however far the point), encoded with
+//! the same positional encoding.
+//!
+//! Compositing follows NeRF++: every ray's samples inside the sphere come first, then those
+//! outside, in one front-to-back pass, so the background's contribution is weighted by the
+//! foreground's transmittance, `C = C_fg + T_fg · C_bg`. The renderer spaces candidates
+//! uniformly in distance inside the sphere and uniformly in inverse distance outside (the
+//! extent's `SphereThenDisparity` spacing). Densities are returned in world units: the
+//! foreground's network density is per unit of `x` (`σ = σ_net / R`), the background's per
+//! unit of `1 / r` (`σ = σ_net / (R r²)`, exact for rays leaving radially, as they do far
+//! out), so equal network outputs mean equal opacity per step of the inverted sphere.
+//!
+//! For bounded and forward-facing scenes there is no background region: the field is a
+//! single (foreground) NeRF on the scene's unit-cube mapping, like `nerf`, and no background
+//! network is built (`background = "auto"`); `"off"` drops it for unbounded scenes too (an
+//! ablation: nothing beyond the sphere).
+//!
+//! The segmentation input is the fine level's final trunk activation (foreground or
+//! background network) followed by the encoded mip-NeRF 360 contraction of `x`
+//! (`x` inside the sphere, `(2 − 1/r) x / r` outside), continuous across the sphere.
+
+mod field;
+
+use serde::{Deserialize, Serialize};
+use sos_core::error::BuildError;
+use sos_core::plugin::{RadianceField, RadianceFieldConfig};
+use sos_core::registry::Registration;
+use sos_core::render::contraction::Contraction;
+use sos_core::scene::SceneExtent;
+
+use crate::nerf::{DensityActivation, NerfShape};
+pub use field::{NerfPpField, NerfPpNet, Space};
+
+/// Whether the background network exists.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Background {
+    /// Only for unbounded scenes.
+    Auto,
+    /// Never (everything beyond the unit sphere is empty).
+    Off,
+}
+
+/// Settings of the `nerf++` field.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct NerfPpConfig {
+    /// Coarse networks + importance sampling (NeRF++); `false` uses the fine networks alone.
+    pub hierarchical: bool,
+    /// Stratified samples per ray of the coarse pass (half inside the sphere, half outside).
+    pub coarse_samples: usize,
+    /// Importance samples per ray added for the fine pass.
+    pub fine_samples: usize,
+    /// Background network: `auto` (unbounded scenes only) or `off`.
+    pub background: Background,
+    /// Positional-encoding octaves of the position (both networks).
+    pub pos_frequencies: usize,
+    /// Positional-encoding octaves of the view direction.
+    pub dir_frequencies: usize,
+    /// Trunk layers (both networks).
+    pub depth: usize,
+    /// Trunk width.
+    pub width: usize,
+    /// Trunk layer that also reads the encoded input (0 = none; NeRF++ uses 4).
+    pub skip: usize,
+    /// Width of the view branch.
+    pub view_width: usize,
+    /// Density activation.
+    pub density_activation: DensityActivation,
+    /// Adam learning rate.
+    pub lr: f32,
+}
+
+impl Default for NerfPpConfig {
+    fn default() -> Self {
+        NerfPpConfig {
+            hierarchical: true,
+            coarse_samples: 128,
+            fine_samples: 256,
+            background: Background::Auto,
+            pos_frequencies: 10,
+            dir_frequencies: 4,
+            depth: 8,
+            width: 256,
+            skip: 4,
+            view_width: 128,
+            density_activation: DensityActivation::Relu,
+            lr: 5e-4,
+        }
+    }
+}
+
+impl NerfPpConfig {
+    fn invalid(key: &str, reason: impl Into<String>) -> BuildError {
+        BuildError::Invalid { kind: "nerf++".into(), key: key.into(), reason: reason.into() }
+    }
+
+    /// The network sizes for inputs of `in_dim` coordinates.
+    pub fn shape(&self, in_dim: usize) -> NerfShape {
+        NerfShape {
+            in_dim,
+            pos_frequencies: self.pos_frequencies,
+            dir_frequencies: self.dir_frequencies,
+            depth: self.depth,
+            width: self.width,
+            skip: (self.skip > 0).then_some(self.skip),
+            view_width: self.view_width,
+        }
+    }
+
+    /// Checks the ranges the types cannot express.
+    pub fn validate(&self) -> Result<(), BuildError> {
+        if self.hierarchical && !(2..=2048).contains(&self.coarse_samples) {
+            return Err(Self::invalid("coarse_samples", "must be in 2..=2048"));
+        }
+        if self.hierarchical && self.fine_samples > 4096 {
+            return Err(Self::invalid("fine_samples", "must be at most 4096"));
+        }
+        if self.pos_frequencies > 16 || self.dir_frequencies > 16 {
+            return Err(Self::invalid("pos_frequencies", "`pos_frequencies` and `dir_frequencies` must be at most 16"));
+        }
+        if !(1..=32).contains(&self.depth) {
+            return Err(Self::invalid("depth", "must be in 1..=32"));
+        }
+        if !(1..=4096).contains(&self.width) || !(1..=4096).contains(&self.view_width) {
+            return Err(Self::invalid("width", "`width` and `view_width` must be in 1..=4096"));
+        }
+        if self.skip >= self.depth {
+            return Err(Self::invalid("skip", format!("must be 0 (no skip) or a trunk layer in 1..{}", self.depth)));
+        }
+        if !(self.lr > 0.0 && self.lr.is_finite()) {
+            return Err(Self::invalid("lr", "must be a positive number"));
+        }
+        Ok(())
+    }
+}
+
+#[typetag::serde(name = "nerf++")]
+impl RadianceFieldConfig for NerfPpConfig {
+    fn build(&self, extent: &SceneExtent, seed: u64) -> Result<Box<dyn RadianceField>, BuildError> {
+        self.validate()?;
+        let space = match *extent {
+            SceneExtent::Unbounded { center, radius } => {
+                if !(radius > 0.0 && radius.is_finite()) {
+                    return Err(Self::invalid("scene", "the scene's foreground sphere needs a positive radius"));
+                }
+                Space::Sphere { center, radius, background: self.background == Background::Auto }
+            }
+            _ => Space::Cube(Contraction::new(extent)),
+        };
+        Ok(Box::new(NerfPpField::new(self.clone(), space, seed)))
+    }
+}
+
+inventory::submit! {
+    Registration::<dyn RadianceFieldConfig>::new(
+        "nerf++",
+        "NeRF++: foreground NeRF in the unit sphere + inverted-sphere background NeRF, for unbounded scenes",
+        || Box::new(NerfPpConfig::default()),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn invalid_settings_name_their_key() {
+        let extent = SceneExtent::Unbounded { center: [0.0; 3], radius: 2.0 };
+        for (cfg, key) in [
+            (NerfPpConfig { skip: 8, ..Default::default() }, "skip"),
+            (NerfPpConfig { coarse_samples: 0, ..Default::default() }, "coarse_samples"),
+            (NerfPpConfig { width: 0, ..Default::default() }, "width"),
+        ] {
+            match cfg.build(&extent, 0) {
+                Err(BuildError::Invalid { key: k, .. }) => assert_eq!(k, key),
+                Err(e) => panic!("unexpected error {e}"),
+                Ok(_) => panic!("{key} should be rejected"),
+            }
+        }
+        let bad_sphere = SceneExtent::Unbounded { center: [0.0; 3], radius: 0.0 };
+        assert!(NerfPpConfig::default().build(&bad_sphere, 0).is_err());
+        let cfg: NerfPpConfig = toml::from_str("background = \"off\"\nwidth = 64").unwrap();
+        assert_eq!(cfg.background, Background::Off);
+        assert!(toml::from_str::<NerfPpConfig>("backgroud = \"off\"").is_err());
+    }
+}
