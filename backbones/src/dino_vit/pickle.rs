@@ -452,10 +452,9 @@ pub fn load(data: &[u8]) -> Result<Value, String> {
             }
             b'b' => {
                 let state = m.pop()?;
-                match m.top()? {
-                    Value::Call(c) => c.borrow_mut().state = Some(state),
-                    // e.g. an OrderedDict's `_metadata` attribute: not needed.
-                    _ => {}
+                // Other targets (e.g. an OrderedDict's `_metadata` attribute) need no state.
+                if let Value::Call(c) = m.top()? {
+                    c.borrow_mut().state = Some(state);
                 }
             }
             // Memo.

@@ -82,10 +82,9 @@ pub struct Tensor3 {
 fn nearest_map(input: usize, output: usize, via: usize) -> Vec<usize> {
     (0..output)
         .map(|i| {
-            if via > 0 {
-                (i * via / output) * input / via
-            } else {
-                i * input / output
+            match ((i * via).checked_div(output), via) {
+                (Some(up), v) if v > 0 => up * input / v,
+                _ => i * input / output,
             }
         })
         .map(|s| s.min(input - 1))

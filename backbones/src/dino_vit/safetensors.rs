@@ -15,7 +15,7 @@ pub fn looks_like(bytes: &[u8]) -> bool {
         return false;
     }
     let n = u64::from_le_bytes(bytes[..8].try_into().expect("8 bytes"));
-    n >= 2 && n <= MAX_HEADER && bytes[8] == b'{'
+    (2..=MAX_HEADER).contains(&n) && bytes[8] == b'{'
 }
 
 /// Tensor name → where its values are.

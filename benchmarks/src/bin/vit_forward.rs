@@ -5,13 +5,15 @@
 //!
 //! Threads: `RAYON_NUM_THREADS` (default 2) for both (ONNX Runtime's intra-op pool gets the
 //! same count). After a warm-up, blocks of runs of each alternate (a pause between blocks so
-//! that neither pool's spinning threads overlap the other's runs); the medians are printed
-//! with their ratio. Without the `onnx` feature only the native time is measured.
+//! that neither pool's spinning threads overlap the other's runs); the medians of wall-clock
+//! and process CPU time are printed with their ratios (CPU time does not count time taken by
+//! other processes, but counts idle spinning of the thread pools). Without the `onnx` feature only the native time is measured.
 
 use std::time::{Duration, Instant};
 
 use rand::{Rng, SeedableRng};
 use sos_backbones::dino_vit::{Vit, VitShape};
+use sos_benchmarks::{load_average, process_cpu_seconds};
 
 const BATCH: usize = 8;
 const SIZE: usize = 224;
@@ -46,10 +48,11 @@ fn main() {
         "ViT-S/16 (random weights), {BATCH} images of {SIZE}x{SIZE}, {threads} threads, {gflop:.1} GFLOP per forward"
     );
 
+    let cpu = || process_cpu_seconds().unwrap_or(f64::NAN);
     let native = || {
-        let t = Instant::now();
+        let (t, c) = (Instant::now(), cpu());
         let out = model.forward(&input, BATCH, SIZE, SIZE);
-        (t.elapsed().as_secs_f64(), out)
+        ((t.elapsed().as_secs_f64(), cpu() - c), out)
     };
     for _ in 0..WARMUP {
         native();
@@ -78,16 +81,24 @@ fn main() {
             std::thread::sleep(Duration::from_millis(300));
         }
     }
-    let tn = median(native_times);
-    println!("native forward: {:8.1} ms  ({:.0} GFLOP/s)", tn * 1e3, gflop / tn);
+    let wall = |v: &[(f64, f64)]| median(v.iter().map(|t| t.0).collect());
+    let cpu_s = |v: &[(f64, f64)]| median(v.iter().map(|t| t.1).collect());
+    println!("load average {:.1} after the runs", load_average().unwrap_or(f64::NAN));
+    let tn = wall(&native_times);
+    println!("native forward: {:8.1} ms wall ({:.0} GFLOP/s), {:.2} CPU s", tn * 1e3, gflop / tn, cpu_s(&native_times));
     if ort.is_some() {
-        let to = median(ort_times);
-        println!("ONNX Runtime:   {:8.1} ms  ({:.0} GFLOP/s)", to * 1e3, gflop / to);
-        println!("native / ONNX Runtime = {:.2}x (target <= 1.5x); max |tokens difference| {max_diff:.2e}", tn / to);
+        let to = wall(&ort_times);
+        println!("ONNX Runtime:   {:8.1} ms wall ({:.0} GFLOP/s), {:.2} CPU s", to * 1e3, gflop / to, cpu_s(&ort_times));
+        println!(
+            "native / ONNX Runtime = {:.2}x wall, {:.2}x CPU (target <= 1.5x); max |tokens difference| {max_diff:.2e}",
+            tn / to,
+            cpu_s(&native_times) / cpu_s(&ort_times)
+        );
     }
 }
 
-type OrtRun = Box<dyn Fn(&[f32]) -> (f64, Vec<f32>)>;
+/// One ONNX Runtime run: ((wall s, CPU s), tokens).
+type OrtRun = Box<dyn Fn(&[f32]) -> ((f64, f64), Vec<f32>)>;
 
 #[cfg(feature = "onnx")]
 fn ort_runner(model: &Vit, threads: usize) -> Option<OrtRun> {
@@ -110,9 +121,9 @@ fn ort_runner(model: &Vit, threads: usize) -> Option<OrtRun> {
     }
     Some(Box::new(move |input: &[f32]| {
         let data = input.to_vec();
-        let t = Instant::now();
+        let (t, c) = (Instant::now(), process_cpu_seconds().unwrap_or(f64::NAN));
         let out = session.run(data, &[BATCH, 3, SIZE, SIZE], &["tokens"]).expect("ORT run");
-        let secs = t.elapsed().as_secs_f64();
+        let secs = (t.elapsed().as_secs_f64(), process_cpu_seconds().unwrap_or(f64::NAN) - c);
         (secs, out.into_iter().next().map(|o| o.data).unwrap_or_default())
     }))
 }

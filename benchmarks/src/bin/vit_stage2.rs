@@ -10,7 +10,11 @@
 //! - warm: the same steps again (the sampler and step counter rewound, so the same patches
 //!   come back): every teacher lookup hits the cache, as in a long run whose placements
 //!   repeat.
-//! Prints seconds per step and the ratios to `cell-stats`. With `--miou STEPS` it also
+//!
+//! Prints wall-clock and process CPU seconds per step and the ratios to `cell-stats` (CPU
+//! time does not count time taken by other processes, but it counts the thread pools' idle
+//! spinning, which grows when the machine is shared). With `SOS_PROFILE=1` each step also
+//! prints its phases, the teacher's among them. With `--miou STEPS` it also
 //! trains the head for STEPS steps with `cell-stats` from rendered and from captured
 //! patches and reports the held-out mIoU of each (`focus` foreground rule).
 //! Threads: `RAYON_NUM_THREADS` (default 2).
@@ -19,6 +23,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use sos_backbones::dino_vit::{DinoVit, Preprocess, Vit, VitShape};
+use sos_benchmarks::{load_average, process_cpu_seconds};
 use sos_core::config::{RunConfig, TeacherSource};
 use sos_core::plugin::FeatureExtractor;
 use sos_core::segment::evaluate::evaluate_masks;
@@ -68,22 +73,36 @@ fn extractor(kind: Kind) -> Box<dyn FeatureExtractor> {
     }
 }
 
-/// Seconds per step of `steps` steps, then of the same steps again (all cache hits).
-fn time_steps(session: &mut Session, kind: Kind, source: TeacherSource, steps: usize) -> (f64, f64, usize, usize) {
+/// Wall and CPU seconds of one timed section.
+#[derive(Clone, Copy)]
+struct Timing {
+    wall: f64,
+    cpu: f64,
+}
+
+fn timed(f: impl FnOnce()) -> Timing {
+    let (t, c) = (Instant::now(), process_cpu_seconds().unwrap_or(f64::NAN));
+    f();
+    Timing { wall: t.elapsed().as_secs_f64(), cpu: process_cpu_seconds().unwrap_or(f64::NAN) - c }
+}
+
+/// Seconds per step of `steps` steps (wall, CPU), then of the same steps again (all cache hits).
+fn time_steps(session: &mut Session, kind: Kind, source: TeacherSource, steps: usize) -> (Timing, Timing, usize, usize) {
     session.config.segment.teacher_source = source;
     session.config.segment.steps = steps;
     let mut seg = Segmenter::build(session).expect("stage 2 builds");
     seg.teacher = Teacher::new(extractor(kind), source, true);
     let sampler = seg.sampler.clone();
-    let t = Instant::now();
-    train_segmentation(session, &mut seg, false).expect("stage 2 runs");
-    let cold = t.elapsed().as_secs_f64() / steps as f64;
+    let per_step = |t: Timing| Timing { wall: t.wall / steps as f64, cpu: t.cpu / steps as f64 };
+    let cold = per_step(timed(|| {
+        train_segmentation(session, &mut seg, false).expect("stage 2 runs");
+    }));
     let misses = seg.teacher.misses;
     seg.step = 0;
     seg.sampler = sampler;
-    let t = Instant::now();
-    train_segmentation(session, &mut seg, false).expect("stage 2 runs");
-    let warm = t.elapsed().as_secs_f64() / steps as f64;
+    let warm = per_step(timed(|| {
+        train_segmentation(session, &mut seg, false).expect("stage 2 runs");
+    }));
     (cold, warm, misses, seg.teacher.hits)
 }
 
@@ -117,27 +136,44 @@ fn main() {
     let t = Instant::now();
     let stats = train_photometric(&mut session, false).expect("stage 1 runs");
     println!("stage 1: {stage1} steps in {:.1} s (last batch PSNR {:.2} dB)", t.elapsed().as_secs_f64(), stats.psnr);
-    println!("stage 2: 8 patches of 64x64 rays per step, {timed} timed steps per row, {threads} threads");
-    println!("{:<22} {:<9} {:>12} {:>12} {:>16}", "teacher", "source", "cold s/step", "warm s/step", "misses / hits");
-    let mut base = (f64::NAN, f64::NAN);
+    println!(
+        "stage 2: 8 patches of 64x64 rays per step, {timed} timed steps per row, {threads} threads (load average {:.1})",
+        load_average().unwrap_or(f64::NAN)
+    );
+    println!(
+        "{:<20} {:<9} {:>15} {:>15} {:>15} {:>15} {:>10}",
+        "teacher", "source", "cold wall s/st", "warm wall s/st", "cold CPU s/st", "warm CPU s/st", "miss/hit"
+    );
+    let mut base: Option<(Timing, Timing)> = None;
     let mut rows = Vec::new();
     for (kind, name) in [(Kind::CellStats, "cell-stats"), (Kind::VitS16, "ViT-S/16 (random)")] {
         for source in [TeacherSource::Rendered, TeacherSource::Captured] {
             let (cold, warm, misses, hits) = time_steps(&mut session, kind, source, timed);
             let src = if source == TeacherSource::Rendered { "rendered" } else { "captured" };
-            println!("{name:<22} {src:<9} {cold:>12.3} {warm:>12.3} {:>16}", format!("{misses} / {hits}"));
+            println!(
+                "{name:<20} {src:<9} {:>15.3} {:>15.3} {:>15.3} {:>15.3} {:>10}",
+                cold.wall,
+                warm.wall,
+                cold.cpu,
+                warm.cpu,
+                format!("{misses}/{hits}")
+            );
             if kind == Kind::CellStats && source == TeacherSource::Rendered {
-                base = (cold, warm);
+                base = Some((cold, warm));
             }
             rows.push((name, src, cold, warm));
         }
     }
+    let (bc, bw) = base.expect("cell-stats row");
     for (name, src, cold, warm) in &rows {
         if name.starts_with("ViT") {
             println!(
-                "{name} {src}: cold {:.2}x, warm (cached) {:.2}x the cell-stats/rendered step (target <= 1.3x with the cache)",
-                cold / base.0,
-                warm / base.1
+                "{name} {src} vs cell-stats rendered: cold {:.2}x wall / {:.2}x CPU, warm (all cached) {:.2}x wall / {:.2}x CPU \
+                 (target <= 1.3x with the cache)",
+                cold.wall / bc.wall,
+                cold.cpu / bc.cpu,
+                warm.wall / bw.wall,
+                warm.cpu / bw.cpu
             );
         }
     }
