@@ -116,7 +116,17 @@ fn open(mode: &Mode, steps: usize, checkpoint: &Path) -> Session {
     let config = RunConfig::parse(&config_text(mode, steps), Path::new("nerf_stage2.toml")).expect("config parses");
     let dir = std::env::temp_dir().join("sos-nerf-stage2");
     let mut session = Session::from_config(config, &dir).expect("scene builds");
+    let t = Instant::now();
     session.load_checkpoint(Some(checkpoint)).expect("stage-1 checkpoint of configs/nerf_synthetic_small.toml");
+    if let Some(occ) = &session.occupancy {
+        eprintln!(
+            "{}: occupancy grid baked in {:.1} s: {:.1}% of {}³ cells occupied",
+            mode.name,
+            t.elapsed().as_secs_f64(),
+            100.0 * occ.occupancy(),
+            occ.resolution()
+        );
+    }
     session
 }
 
@@ -140,9 +150,6 @@ fn speed(checkpoint: &Path, steps: usize) {
     println!("|---|---|---|---|---|---|---|");
     for mode in &modes {
         let mut session = open(mode, 1, checkpoint);
-        if let Some(occ) = &session.occupancy {
-            eprintln!("{}: occupancy {:.1}% of {}³ cells", mode.name, 100.0 * occ.occupancy(), occ.resolution());
-        }
         let mut seg = Segmenter::build(&session).expect("stage 2 builds");
         session.config.segment.steps = 1;
         train_segmentation(&mut session, &mut seg, false).expect("warm-up step");
@@ -203,6 +210,33 @@ fn quality(checkpoint: &Path, steps: usize) {
     }
 }
 
+/// Quantiles of the frozen density at one jittered probe per cell of a 64³ grid over the scene
+/// (what the occupancy threshold is up against).
+fn density_stats(checkpoint: &Path) {
+    use rand::{Rng, SeedableRng};
+    let mode = Mode { name: "density", occupancy: false, ..ALL_SKIPS };
+    let session = open(&mode, 1, checkpoint);
+    let res = 64;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+    let positions: Vec<[f32; 3]> = (0..res * res * res)
+        .map(|i| {
+            let (x, y, z) = (i % res, (i / res) % res, i / (res * res));
+            let u = [x, y, z].map(|c| (c as f32 + rng.gen::<f32>()) / res as f32);
+            session.contraction.from_unit(u)
+        })
+        .collect();
+    let mut sigma = vec![0.0; positions.len()];
+    session.field.density(&positions, &mut sigma);
+    let mut sorted = sigma.clone();
+    sorted.sort_by(f32::total_cmp);
+    let q = |f: f64| sorted[((sorted.len() - 1) as f64 * f) as usize];
+    println!("density quantiles over {} probes: 10% {:.3} 50% {:.3} 90% {:.3} 99% {:.3} max {:.3}", sorted.len(), q(0.1), q(0.5), q(0.9), q(0.99), q(1.0));
+    for t in [0.01f32, 0.027, 0.1, 0.3, 1.0, 3.0, 10.0] {
+        let above = sigma.iter().filter(|&&s| s > t).count() as f64 / sigma.len() as f64;
+        println!("  above {t:>6}: {:.1}%", 100.0 * above);
+    }
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let what = args.get(1).map(String::as_str).unwrap_or("speed");
@@ -214,6 +248,7 @@ fn main() {
     match what {
         "speed" => speed(&checkpoint, steps.unwrap_or(2)),
         "quality" => quality(&checkpoint, steps.unwrap_or(100)),
+        "density" => density_stats(&checkpoint),
         other => {
             eprintln!("unknown mode `{other}`: use `speed` or `quality`");
             std::process::exit(2);
