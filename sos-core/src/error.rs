@@ -86,7 +86,7 @@ pub enum RunError {
     #[error("cannot load the scene")]
     Dataset(#[from] crate::plugin::dataset::DatasetError),
     /// A plugin could not be built.
-    #[error("{0}")]
+    #[error(transparent)]
     Build(#[from] BuildError),
     /// Reading or writing a file failed.
     #[error(transparent)]
