@@ -7,16 +7,22 @@
 //! - `all-skips`: occupancy grid baked from the frozen density (128³, one cell of margin),
 //!   early ray termination (transmittance 1e-4), weight threshold 1e-3, fine network alone on
 //!   the occupancy-skipped candidates (`hierarchical = false`, 192 candidates per ray);
-//! - `no-weight-threshold`: the same with the weight threshold off;
+//! - `no-weight-threshold`, `no-early-termination`, `no-occupancy`: the same with one skip
+//!   switched off;
 //! - `all-skips-hierarchical`: every skip, but with the coarse network and 128 importance
 //!   samples kept;
 //! - `no-skipping`: the reference pipeline (coarse + fine, no occupancy, no termination, no
 //!   threshold) with ONE patch, as the reference's 41 s figure is for one patch (eight would
 //!   need about 9 GB for the head's inputs alone).
 //!
-//! `... nerf_stage2 -- quality [checkpoint] [steps]` trains stage 2 twice on the small scene
-//! (4 patches of 32x32 rays, same seeds) — once with every skip and once without any — and
-//! evaluates the masks of the held-out views under the same settings; it prints both mIoUs.
+//! `... nerf_stage2 -- quality [checkpoint] [steps]` trains stage 2 on the small scene (4
+//! patches of 24x24 rays) with every skip and without any, for two seeds, and evaluates the
+//! masks of the held-out views under the training run's settings; the head trained with
+//! skipping is also evaluated without skipping (skipping at inference alone).
+//!
+//! `... nerf_stage2 -- head [checkpoint] [repeats]` times the head phase alone (segmentation
+//! input, head forward and backward) on the samples one 64x64 patch keeps in each mode;
+//! `... -- density [checkpoint]` prints quantiles of the frozen density.
 //!
 //! Wall time depends on what else runs on the machine; each line also gives the process's CPU
 //! seconds per step and the load average.
@@ -33,6 +39,7 @@ use sos_core::train::Session;
 use sos_plugins as _;
 
 /// Settings of one mode.
+#[derive(Clone, Copy)]
 struct Mode {
     name: &'static str,
     hierarchical: bool,
@@ -79,7 +86,7 @@ occupancy_resolution = 128
 occupancy_warmup = 0
 checkpoint_every = 0
 [render]
-chunk = 8192
+chunk = 2048
 [segment]
 steps = {steps}
 patches = {patches}
@@ -134,6 +141,8 @@ fn speed(checkpoint: &Path, steps: usize) {
     let modes = [
         ALL_SKIPS,
         Mode { name: "no-weight-threshold", weight_threshold: 0.0, ..ALL_SKIPS },
+        Mode { name: "no-early-termination", early_stop: 0.0, ..ALL_SKIPS },
+        Mode { name: "no-occupancy", occupancy: false, ..ALL_SKIPS },
         Mode { name: "all-skips-hierarchical", hierarchical: true, ..ALL_SKIPS },
         Mode {
             name: "no-skipping",
@@ -148,7 +157,10 @@ fn speed(checkpoint: &Path, steps: usize) {
     println!("nerf_stage2 speed: checkpoint {}, {steps} timed step(s) per mode after 1 warm-up", checkpoint.display());
     println!("| mode | patches | rays | s/step (wall) | CPU s/step | head samples/ray | load avg |");
     println!("|---|---|---|---|---|---|---|");
-    for mode in &modes {
+    // `NERF_STAGE2_MODES=all-skips,no-skipping` restricts the run to those modes.
+    let only: Option<Vec<String>> =
+        std::env::var("NERF_STAGE2_MODES").ok().map(|v| v.split(',').map(str::to_owned).collect());
+    for mode in modes.iter().filter(|m| only.as_ref().map_or(true, |o| o.iter().any(|n| n == m.name))) {
         let mut session = open(mode, 1, checkpoint);
         let mut seg = Segmenter::build(&session).expect("stage 2 builds");
         session.config.segment.steps = 1;
@@ -178,35 +190,134 @@ fn speed(checkpoint: &Path, steps: usize) {
 }
 
 fn quality(checkpoint: &Path, steps: usize) {
-    let small = |m: Mode| Mode { patches: 4, patch_size: 32, ..m };
-    let modes = [
-        small(ALL_SKIPS),
-        small(Mode { name: "no-skipping", hierarchical: true, occupancy: false, early_stop: 0.0, weight_threshold: 0.0, ..ALL_SKIPS }),
+    let small = |m: Mode| Mode { patches: 4, patch_size: 24, ..m };
+    let skips = small(ALL_SKIPS);
+    let none = small(Mode { name: "no-skipping", hierarchical: true, occupancy: false, early_stop: 0.0, weight_threshold: 0.0, ..ALL_SKIPS });
+    println!(
+        "nerf_stage2 quality: checkpoint {}, {steps} stage-2 steps of 4 patches of 24x24 rays per run",
+        checkpoint.display()
+    );
+    println!("| seed | head trained with | masks rendered with | train s | masks s | ARI | IoU BG | IoU FG | mIoU | PSNR |");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.4}"));
+    for seed in [0u64, 1] {
+        for mode in [skips, none] {
+            let mut session = open(&mode, steps, checkpoint);
+            session.config.seed = seed;
+            let mut seg = Segmenter::build(&session).expect("stage 2 builds");
+            let t = Instant::now();
+            train_segmentation(&mut session, &mut seg, false).expect("stage 2 trains");
+            let train_s = t.elapsed().as_secs_f64();
+            // Masks under the training mode, and (for the skipping run) also without skipping,
+            // to separate the effect of skipping at inference from training noise.
+            let mut renders = vec![(mode.name, &session)];
+            let other;
+            if mode.name == skips.name {
+                other = open(&none, steps, checkpoint);
+                renders.push((none.name, &other));
+            }
+            for (render_name, s) in renders {
+                let inference = MaskInference::new(s, &seg.head, Some(seg.teacher.extractor())).expect("inference");
+                let eval = evaluate_masks(s, &inference, false).expect("masks");
+                let iou = eval.segmentation.iou();
+                println!(
+                    "| {seed} | {} | {} | {:.0} | {:.0} | {} | {} | {} | {} | {} |",
+                    mode.name,
+                    render_name,
+                    train_s,
+                    eval.seconds,
+                    f(eval.segmentation.mean_ari()),
+                    f(iou.iou_bg),
+                    f(iou.iou_fg),
+                    f(iou.miou),
+                    eval.image.mean_psnr().map_or("-".into(), |p| format!("{p:.2}"))
+                );
+            }
+        }
+    }
+}
+
+/// One head trained with every skip (seed 0), its masks rendered under each skip setting:
+/// which skip moves the masks.
+fn inference_skips(checkpoint: &Path, steps: usize) {
+    let small = |m: Mode| Mode { patches: 4, patch_size: 24, ..m };
+    let skips = small(ALL_SKIPS);
+    let none = Mode { name: "no-skipping", hierarchical: true, occupancy: false, early_stop: 0.0, weight_threshold: 0.0, ..skips };
+    let renders = [
+        skips,
+        Mode { name: "all-skips-hierarchical", hierarchical: true, ..skips },
+        Mode { name: "occupancy-only-hierarchical", early_stop: 0.0, weight_threshold: 0.0, ..Mode { hierarchical: true, ..skips } },
+        Mode { name: "early-termination-only-hierarchical", occupancy: false, weight_threshold: 0.0, ..Mode { hierarchical: true, ..skips } },
+        Mode { name: "weight-threshold-only-hierarchical", occupancy: false, early_stop: 0.0, ..Mode { hierarchical: true, ..skips } },
+        none,
     ];
-    println!("nerf_stage2 quality: checkpoint {}, {steps} stage-2 steps of 4 patches of 32x32 rays per mode", checkpoint.display());
-    println!("| mode | train s | masks s | ARI | IoU BG | IoU FG | mIoU | PSNR |");
-    println!("|---|---|---|---|---|---|---|---|");
-    for mode in modes {
-        let mut session = open(&mode, steps, checkpoint);
-        let mut seg = Segmenter::build(&session).expect("stage 2 builds");
-        let t = Instant::now();
-        train_segmentation(&mut session, &mut seg, false).expect("stage 2 trains");
-        let train_s = t.elapsed().as_secs_f64();
-        let inference = MaskInference::new(&session, &seg.head, Some(seg.teacher.extractor())).expect("inference");
-        let eval = evaluate_masks(&session, &inference, false).expect("masks");
-        let iou = eval.segmentation.iou();
+    let mut session = open(&skips, steps, checkpoint);
+    let mut seg = Segmenter::build(&session).expect("stage 2 builds");
+    train_segmentation(&mut session, &mut seg, false).expect("stage 2 trains");
+    println!("nerf_stage2 inference: one head ({steps} steps with every skip, seed 0), masks rendered under each setting");
+    println!("| masks rendered with | masks s | ARI | mIoU | PSNR |");
+    println!("|---|---|---|---|---|");
+    for mode in renders {
+        let s = open(&mode, steps, checkpoint);
+        let inference = MaskInference::new(&s, &seg.head, Some(seg.teacher.extractor())).expect("inference");
+        let eval = evaluate_masks(&s, &inference, false).expect("masks");
         let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.4}"));
         println!(
-            "| {} | {:.0} | {:.0} | {} | {} | {} | {} | {} |",
+            "| {} | {:.0} | {} | {} | {} |",
             mode.name,
-            train_s,
             eval.seconds,
             f(eval.segmentation.mean_ari()),
-            f(iou.iou_bg),
-            f(iou.iou_fg),
-            f(iou.miou),
+            f(eval.segmentation.iou().miou),
             eval.image.mean_psnr().map_or("-".into(), |p| format!("{p:.2}"))
         );
+    }
+}
+
+/// The head phase of a stage-2 step on its own: segmentation input, head forward and head
+/// backward (what weight thresholding decides the size of), on the samples that survive the
+/// render of one 64x64 patch in each mode. Returns (seconds, samples per ray).
+fn head_phase(checkpoint: &Path, repeats: usize) {
+    use rand::{Rng, SeedableRng};
+    use sos_core::config::HeadConfig;
+    use sos_core::render::rays::PatchGrid;
+    use sos_core::render::renderer::render;
+    use sos_core::segment::head::SegHead;
+    use sos_core::segment::patches::{patch_rays, Patch};
+    let no_skip = Mode { name: "no-skipping", hierarchical: true, occupancy: false, early_stop: 0.0, weight_threshold: 0.0, ..ALL_SKIPS };
+    let modes = [
+        no_skip,
+        Mode { name: "weight-threshold-only", weight_threshold: 1e-3, ..no_skip },
+        Mode { name: "all-skips-without-weight-threshold", weight_threshold: 0.0, ..ALL_SKIPS },
+        ALL_SKIPS,
+    ];
+    println!("nerf_stage2 head phase: one 64x64 patch (4096 rays), segmentation input + head forward + backward, median of {repeats}");
+    println!("| mode | head samples/ray | head phase s | load avg |");
+    println!("|---|---|---|---|");
+    for mode in &modes {
+        let session = open(mode, 1, checkpoint);
+        let view = session.scene.train[0];
+        let grid = PatchGrid { col0: 40, row0: 28, size: 64, stride: 1 };
+        let rays = patch_rays(&session.scene, &[Patch { view, grid }]);
+        let mut options = session.render_options(false);
+        options.min_weight = mode.weight_threshold;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+        let mut r = render(session.field.as_ref(), session.render_context(), &rays, options, false, &mut rng);
+        r.composite(&[], 0);
+        let n = r.samples.len();
+        let dim = session.field.seg_input_dim();
+        let mut head = SegHead::new(&HeadConfig::default(), dim, 1e-3, 0);
+        let grads: Vec<f32> = (0..n * head.outputs()).map(|_| rng.gen_range(-1e-3..1e-3)).collect();
+        let mut times = Vec::new();
+        for _ in 0..repeats {
+            let t = Instant::now();
+            let mut input = vec![0.0; n * dim];
+            session.field.seg_input(&r.samples.positions, &mut input);
+            let (_, tape) = head.forward(&input, n);
+            head.backward(&tape, &grads);
+            times.push(t.elapsed().as_secs_f64());
+        }
+        times.sort_by(f64::total_cmp);
+        println!("| {} | {:.1} | {:.3} | {} |", mode.name, n as f64 / rays.len() as f64, times[times.len() / 2], load_average());
     }
 }
 
@@ -249,6 +360,8 @@ fn main() {
         "speed" => speed(&checkpoint, steps.unwrap_or(2)),
         "quality" => quality(&checkpoint, steps.unwrap_or(100)),
         "density" => density_stats(&checkpoint),
+        "head" => head_phase(&checkpoint, steps.unwrap_or(3)),
+        "inference" => inference_skips(&checkpoint, steps.unwrap_or(60)),
         other => {
             eprintln!("unknown mode `{other}`: use `speed` or `quality`");
             std::process::exit(2);
