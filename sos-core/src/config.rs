@@ -161,11 +161,31 @@ pub struct MaskConfig {
     pub normalize: bool,
     /// Rule that names the foreground cluster.
     pub foreground: ForegroundRule,
+    /// Which regions of the foreground cluster make the mask (see [`KeepRegions`]).
+    pub keep: KeepRegions,
+}
+
+/// Which connected regions of the foreground cluster are kept in the mask.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum KeepRegions {
+    /// Every pixel of the cluster (the reference).
+    All,
+    /// Only the 4-connected regions holding a pixel that the `focus` rule counts as the
+    /// object's (nearest the focus point); NV-ARI then scores these two regions.
+    Connected,
 }
 
 impl Default for MaskConfig {
     fn default() -> Self {
-        MaskConfig { clusters: 2, restarts: 10, softmax: false, normalize: false, foreground: ForegroundRule::Focus }
+        MaskConfig {
+            clusters: 2,
+            restarts: 10,
+            softmax: false,
+            normalize: false,
+            foreground: ForegroundRule::Focus,
+            keep: KeepRegions::Connected,
+        }
     }
 }
 

@@ -14,9 +14,12 @@
 //!   the image's): whatever the view is centred on.
 //!
 //! With more than two clusters the foreground is the single chosen cluster.
+//!
+//! `masks.keep = "connected"` (the default) then drops the regions of the foreground cluster
+//! that hold none of the `focus` rule's voting pixels ([`crate::segment::cleanup`]).
 
 use crate::camera::{axpy, dot, normalize, sub, Camera, Vec3};
-use crate::config::{ForegroundRule, MaskConfig};
+use crate::config::{ForegroundRule, KeepRegions, MaskConfig};
 use crate::error::{ConfigError, RunError};
 use crate::image::{GrayImage, RgbImage};
 use crate::kmeans::{kmeans, KMeansConfig, KMeansResult};
@@ -25,6 +28,7 @@ use crate::render::composite::EMPTY_RAY_DEPTH;
 use crate::render::rays::RayBatch;
 use crate::render::renderer::render_inference;
 use crate::scene::Scene;
+use crate::segment::cleanup::keep_seeded_regions;
 use crate::segment::head::SegHead;
 use crate::train::session::Session;
 
@@ -172,26 +176,28 @@ pub fn foreground_by_saliency(labels: &[u32], k: usize, saliency: &[f32]) -> usi
 /// Fraction of a view's pixels, nearest the focus point, that vote for the foreground cluster.
 pub const FOCUS_VOTE_FRACTION: f64 = 0.05;
 
-/// The cluster (of `k`) holding most of the pixels whose points lie nearest `focus` (the
-/// nearest [`FOCUS_VOTE_FRACTION`] of the pixels with a point). A vote rather than a mean
+/// Indices of the pixels whose points lie nearest `focus`: the nearest
+/// [`FOCUS_VOTE_FRACTION`] of the pixels with a point (at least one; none without points).
+pub fn focus_voters(points: &[Option<Vec3>], focus: Vec3) -> Vec<usize> {
+    let mut near: Vec<(f32, usize)> =
+        points.iter().enumerate().filter_map(|(i, p)| p.map(|p| (dot(sub(p, focus), sub(p, focus)), i))).collect();
+    if near.is_empty() {
+        return Vec::new();
+    }
+    let n_votes = ((near.len() as f64 * FOCUS_VOTE_FRACTION).ceil() as usize).clamp(1, near.len());
+    near.select_nth_unstable_by(n_votes - 1, |a, b| a.0.total_cmp(&b.0));
+    near[..n_votes].iter().map(|&(_, i)| i).collect()
+}
+
+/// The cluster (of `k`) holding most of the [`focus_voters`]. A vote rather than a mean
 /// distance: a cluster that contains the object together with far walls still wins, while one
 /// that is merely close on average (the ground under the object) does not. Pixels without a
 /// point (empty rays) do not vote; with no points at all, cluster 0 is returned.
 pub fn foreground_by_focus(labels: &[u32], k: usize, points: &[Option<Vec3>], focus: Vec3) -> usize {
-    let mut near: Vec<(f32, u32)> = points
-        .iter()
-        .zip(labels)
-        .filter_map(|(p, &l)| p.map(|p| (dot(sub(p, focus), sub(p, focus)), l)))
-        .collect();
-    if near.is_empty() {
-        return 0;
-    }
-    let n_votes = ((near.len() as f64 * FOCUS_VOTE_FRACTION).ceil() as usize).clamp(1, near.len());
-    near.select_nth_unstable_by(n_votes - 1, |a, b| a.0.total_cmp(&b.0));
     let mut votes = vec![0usize; k.max(1)];
-    for &(_, l) in &near[..n_votes] {
-        if (l as usize) < votes.len() {
-            votes[l as usize] += 1;
+    for i in focus_voters(points, focus) {
+        if let Some(v) = votes.get_mut(labels[i] as usize) {
+            *v += 1;
         }
     }
     (0..votes.len()).max_by_key(|&c| (votes[c], std::cmp::Reverse(c))).unwrap_or(0)
@@ -286,6 +292,14 @@ impl ViewMask {
         ViewMask { labels, clusters, foreground_cluster, foreground, rgb }
     }
 
+    /// Keeps the foreground regions holding a seed pixel ([`keep_seeded_regions`]); the
+    /// labels become the two regions (foreground 1, background 0).
+    pub fn keep_regions_of(self, seeds: &[usize]) -> ViewMask {
+        let foreground = keep_seeded_regions(&self.foreground, self.rgb.width, self.rgb.height, seeds);
+        let labels = foreground.iter().map(|&f| u32::from(f)).collect();
+        ViewMask { labels, clusters: 2, foreground_cluster: 1, foreground, rgb: self.rgb }
+    }
+
     /// The binary mask, foreground 1 (written as 255).
     pub fn mask_image(&self) -> GrayImage {
         GrayImage {
@@ -357,18 +371,20 @@ impl<'a> MaskInference<'a> {
             ))
         })?;
         let (w, h) = (r.rgb.width, r.rgb.height);
+        // Nothing rendered in the centre: fall back to where the cameras look.
+        let focus = self.focus.point_for(&r.depth, w, h).unwrap_or_else(|| self.session.scene.focus_point());
         let fg = match masks.foreground {
             ForegroundRule::Saliency => {
                 let saliency = self.saliency(&r.rgb)?;
                 foreground_by_saliency(&km.labels, km.k, &saliency)
             }
-            ForegroundRule::Focus => match self.focus.point_for(&r.depth, w, h) {
-                Some(p) => foreground_by_focus(&km.labels, km.k, &r.points, p),
-                // Nothing rendered in the centre: fall back to where the cameras look.
-                None => foreground_by_focus(&km.labels, km.k, &r.points, self.session.scene.focus_point()),
-            },
+            ForegroundRule::Focus => foreground_by_focus(&km.labels, km.k, &r.points, focus),
         };
-        Ok(ViewMask::new(km.labels, km.k, fg, r.rgb))
+        let mask = ViewMask::new(km.labels, km.k, fg, r.rgb);
+        Ok(match masks.keep {
+            KeepRegions::All => mask,
+            KeepRegions::Connected => mask.keep_regions_of(&focus_voters(&r.points, focus)),
+        })
     }
 
     /// The extractor's saliency of a rendered image, upsampled to its pixels.
@@ -476,7 +492,7 @@ mod tests {
         // Saliency is higher on the square.
         let saliency: Vec<f32> = (0..w * h).map(|i| if inside(i) { 0.7 } else { 0.2 }).collect();
         for (softmax, normalize) in [(false, false), (true, false), (false, true)] {
-            let masks = MaskConfig { clusters: 2, restarts: 3, softmax, normalize, foreground: ForegroundRule::Saliency };
+            let masks = MaskConfig { clusters: 2, restarts: 3, softmax, normalize, foreground: ForegroundRule::Saliency, keep: KeepRegions::All };
             let km = cluster_logits(&logits, 2, &masks, 0).unwrap();
             assert_eq!(km.k, 2);
             let fg = foreground_by_saliency(&km.labels, km.k, &saliency);

@@ -1,6 +1,7 @@
 //! Stage 2: the segmentation head attached to every field, strided patch sampling, training
 //! with the collaborative contrastive loss, and mask inference with k-means.
 
+pub mod cleanup;
 pub mod defaults;
 pub mod evaluate;
 pub mod head;

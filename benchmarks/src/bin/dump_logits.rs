@@ -1,0 +1,51 @@
+//! Writes what mask inference sees for each held-out view, for studying inference rules
+//! outside the pipeline: `<out>/<view>.bin` holds, for every pixel, the composited logits,
+//! the rendered depth, the rendered 3D point (NaN for empty rays) and the ground-truth mask
+//! (−1 where there is none), as little-endian f32 rows of `channels + 1 + 3 + 1` values;
+//! `<out>/meta.json` gives the sizes, the focus point and the channel count.
+//!
+//! `cargo run --release -p sos-benchmarks --bin dump_logits -- CONFIG CHECKPOINT OUT_DIR`
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use sos_core::segment::infer::{render_logits, FocusTarget};
+use sos_core::segment::store::load_with_head;
+use sos_core::train::Session;
+use sos_plugins as _;
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let [config, checkpoint, out] = &args[..] else {
+        eprintln!("usage: dump_logits CONFIG CHECKPOINT OUT_DIR");
+        std::process::exit(2);
+    };
+    let mut session = Session::open(config.as_ref()).expect("config opens");
+    let (loaded, _) = load_with_head(&mut session, Some(checkpoint.as_ref())).expect("checkpoint loads");
+    let head = loaded.expect("the checkpoint holds a segmentation head").head;
+    let out = PathBuf::from(out);
+    std::fs::create_dir_all(&out).expect("output folder");
+    let focus = FocusTarget::of_scene(&session.scene);
+    let mut views = Vec::new();
+    for &i in &session.scene.test {
+        let view = &session.scene.views[i];
+        let r = render_logits(&session, &head, &view.camera);
+        let (w, h) = (r.rgb.width, r.rgb.height);
+        let gt = view.mask.as_ref().map(|m| m.resized_nearest(w, h));
+        let mut bytes = Vec::with_capacity(w * h * (r.channels + 5) * 4);
+        for p in 0..w * h {
+            let mut row: Vec<f32> = r.logits[p * r.channels..(p + 1) * r.channels].to_vec();
+            row.push(r.depth[p]);
+            row.extend(r.points[p].unwrap_or([f32::NAN; 3]));
+            row.push(gt.as_ref().map_or(-1.0, |g| g.data[p]));
+            row.iter().for_each(|v| bytes.extend(v.to_le_bytes()));
+        }
+        std::fs::write(out.join(format!("{}.bin", view.name)), bytes).expect("write view");
+        let fp = focus.point_for(&r.depth, w, h).unwrap_or(session.scene.focus_point());
+        views.push(format!("{{\"name\":\"{}\",\"width\":{w},\"height\":{h},\"focus\":{:?}}}", view.name, fp));
+        eprintln!("{}", view.name);
+    }
+    let channels = head.outputs();
+    let mut f = std::fs::File::create(out.join("meta.json")).expect("meta");
+    writeln!(f, "{{\"channels\":{channels},\"views\":[{}]}}", views.join(",")).expect("meta");
+}
