@@ -21,6 +21,10 @@ use crate::train::session::{kind_of, Session};
 /// Consecutive non-finite losses after which stage 2 stops.
 const MAX_BAD_STEPS: usize = 20;
 
+/// Offset of the patch sampler's seed from the run's (its own stream, so the patch sequence
+/// does not depend on what else a step draws).
+const PATCH_SEED: u64 = 0x9A7C;
+
 /// A built loss term with its weight and name.
 pub struct WeightedLoss {
     /// Name for logs (the loss kind).
@@ -91,7 +95,7 @@ impl Segmenter {
             .map(|e| Ok(WeightedLoss { name: kind_of(&e.loss), weight: e.weight, loss: e.loss.build()? }))
             .collect::<Result<Vec<_>, RunError>>()?;
         let seg = &cfg.segment;
-        let sampler = PatchSampler::new(seg.patch_size, seg.stride);
+        let sampler = PatchSampler::new(seg.patch_size, seg.stride, seg.offset_grid, cfg.seed.wrapping_add(PATCH_SEED));
         sampler.check(&session.scene).map_err(|message| {
             RunError::Config(crate::error::ConfigError::Invalid {
                 path: session.config_dir.clone(),
@@ -139,7 +143,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
     let mut last = SegStepStats::default();
     let mut bad_steps = 0;
     while seg.step < cfg.steps {
-        let patches = seg.sampler.next_batch(&session.scene, n_patches, &mut rng);
+        let patches = seg.sampler.next_batch(&session.scene, n_patches);
         for notice in seg.sampler.take_notices() {
             bar.println(format!("notice: {notice}"));
         }
