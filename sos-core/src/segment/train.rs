@@ -73,11 +73,12 @@ impl Segmenter {
     /// Builds the head, teacher, miner and losses from the session's config.
     pub fn build(session: &Session) -> Result<Segmenter, RunError> {
         let cfg = &session.config;
-        let extractor_cfg = match &cfg.extractor {
-            Some(e) => e.build()?,
+        let ctx = session.build_context();
+        let extractor = match &cfg.extractor {
+            Some(e) => e.build(&ctx)?,
             None => defaults::extractor()
                 .ok_or_else(|| missing("extractor", defaults::DEFAULT_EXTRACTOR, "extractor"))?
-                .build()?,
+                .build(&ctx)?,
         };
         let miner = match &cfg.miner {
             Some(m) => m.build()?,
@@ -105,7 +106,7 @@ impl Segmenter {
         })?;
         Ok(Segmenter {
             head: SegHead::new(&cfg.head, session.field.seg_input_dim(), seg.lr, cfg.seed),
-            teacher: Teacher::new(extractor_cfg, seg.teacher_source, seg.cache_teacher),
+            teacher: Teacher::new(extractor, seg.teacher_source, seg.cache_teacher),
             miner,
             losses,
             sampler,
@@ -187,7 +188,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
             rendered[patch].data[pix * 3..pix * 3 + 3].copy_from_slice(&r.colors[ray].rgb);
         }
         let t_render = timer.elapsed().as_secs_f64();
-        let features = seg.teacher.features(&session.scene, &patches, &rendered, !joint);
+        let features = seg.teacher.features(&session.scene, &patches, &rendered, !joint)?;
         let t_teacher = timer.elapsed().as_secs_f64();
         let cls: Vec<Vec<f32>> = features.iter().map(|f| f.cls.clone()).collect();
         let negatives = seg.miner.negatives(&cls, &mut rng);
