@@ -4,17 +4,18 @@
 use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
-use rand::SeedableRng;
+use rand::{Rng, SeedableRng};
 
 use crate::config::LossEntry;
 use crate::error::{BuildError, RunError};
 use crate::image::RgbImage;
 use crate::plugin::{ContrastiveLoss, PairMiner, PatchBatch};
-use crate::render::composite::{RayGrad, EMPTY_RAY_DEPTH};
-use crate::render::renderer::render;
+use crate::render::composite::{RayColor, RayGrad, EMPTY_RAY_DEPTH};
+use crate::render::rays::RayBatch;
+use crate::render::renderer::{render, Rendered};
 use crate::segment::defaults;
 use crate::segment::head::SegHead;
-use crate::segment::patches::{patch_rays, PatchSampler};
+use crate::segment::patches::{patch_rays, Patch, PatchSampler};
 use crate::segment::teacher::{captured_patch, Teacher};
 use crate::train::session::{kind_of, Session};
 
@@ -150,13 +151,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
         }
         let timer = Instant::now();
         let rays = patch_rays(&session.scene, &patches);
-        let mut options = session.render_options(false);
-        if !joint {
-            // Density is frozen: samples with negligible weight cannot matter.
-            options.min_weight = cfg.weight_threshold;
-        }
-        let mut r = render(session.field.as_ref(), session.render_context(), &rays, options, joint, &mut rng);
-        r.composite(&[], 0);
+        let mut r = render_rays(session, &rays, joint, &mut rng);
 
         // Head on the surviving samples, then logits composited with the field's weights.
         let n_samples = r.samples.len();
@@ -178,15 +173,14 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
         let mut depth: Vec<f32> = r.colors.iter().map(|c| c.depth).collect();
         fill_empty_depths(&mut depth);
         let mut points = vec![0.0f32; n_patches * 3 * rays_per_patch];
-        let mut rendered = vec![RgbImage::new(p, p); n_patches];
         for ray in 0..rays.len() {
             let (patch, pix) = (ray / rays_per_patch, ray % rays_per_patch);
             let (o, d) = (rays.origins[ray], rays.directions[ray]);
             for a in 0..3 {
                 points[(patch * 3 + a) * rays_per_patch + pix] = o[a] + d[a] * depth[ray];
             }
-            rendered[patch].data[pix * 3..pix * 3 + 3].copy_from_slice(&r.colors[ray].rgb);
         }
+        let rendered = patch_images(&r.colors, p);
         let t_render = timer.elapsed().as_secs_f64();
         let features = seg.teacher.features(&session.scene, &patches, &rendered, !joint)?;
         let t_teacher = timer.elapsed().as_secs_f64();
@@ -298,8 +292,45 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
     Ok(last)
 }
 
+/// Renders patch rays as a stage-2 step does. With the density frozen (`joint = false`),
+/// samples whose compositing weight is below `segment.weight_threshold` are skipped: they
+/// cannot matter.
+fn render_rays(session: &Session, rays: &RayBatch, joint: bool, rng: &mut impl Rng) -> Rendered {
+    let mut options = session.render_options(false);
+    if !joint {
+        options.min_weight = session.config.segment.weight_threshold;
+    }
+    let mut r = render(session.field.as_ref(), session.render_context(), rays, options, joint, rng);
+    r.composite(&[], 0);
+    r
+}
+
+/// Rendered colours of `p x p` patches, patch after patch, as images.
+fn patch_images(colors: &[RayColor], p: usize) -> Vec<RgbImage> {
+    colors
+        .chunks(p * p)
+        .map(|patch| {
+            let mut img = RgbImage::new(p, p);
+            for (px, c) in img.data.chunks_exact_mut(3).zip(patch) {
+                px.copy_from_slice(&c.rgb);
+            }
+            img
+        })
+        .collect()
+}
+
+/// The frozen field's rendering of each patch as a stage-2 step renders it: the teacher's
+/// input with `teacher_source = "rendered"` (e.g. to fill the teacher cache ahead of steps).
+pub fn render_patches(session: &Session, patches: &[Patch]) -> Vec<RgbImage> {
+    let rays = patch_rays(&session.scene, patches);
+    // Evaluation marching is not stratified: the generator does not change the result.
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed);
+    let r = render_rays(session, &rays, false, &mut rng);
+    patch_images(&r.colors, session.config.segment.patch_size as usize)
+}
+
 /// The photographs' colours at each patch ray, patch after patch.
-fn captured_targets(session: &Session, patches: &[crate::segment::patches::Patch]) -> Vec<[f32; 3]> {
+fn captured_targets(session: &Session, patches: &[Patch]) -> Vec<[f32; 3]> {
     patches
         .iter()
         .flat_map(|patch| {
@@ -309,7 +340,7 @@ fn captured_targets(session: &Session, patches: &[crate::segment::patches::Patch
         .collect()
 }
 
-fn patch_mse(colors: &[crate::render::composite::RayColor], targets: &[[f32; 3]]) -> f64 {
+fn patch_mse(colors: &[RayColor], targets: &[[f32; 3]]) -> f64 {
     let sum: f64 = colors
         .iter()
         .zip(targets)
