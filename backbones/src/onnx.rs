@@ -173,7 +173,8 @@ impl OnnxModel {
             return Err(resource(format!(
                 "ONNX model `{}` not found; export the backbone to ONNX (see backbones/README.md: \
                  `torch.onnx.export`, or `sos-benchmarks`' `vit_onnx_export` for a DINO ViT checkpoint) \
-                 and set `model` in `[extractor]` to its path",
+                 and set `model` in `[extractor]` to its path (a relative path is resolved against the \
+                 config file's folder)",
                 model.display()
             )));
         }
