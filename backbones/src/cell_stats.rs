@@ -25,9 +25,9 @@
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use sos_core::error::BuildError;
+use sos_core::error::{BuildError, ExtractError};
 use sos_core::image::RgbImage;
-use sos_core::plugin::{FeatureExtractor, FeatureExtractorConfig, FeatureMap};
+use sos_core::plugin::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};
 use sos_core::registry::Registration;
 
 const KIND: &str = "cell-stats";
@@ -142,7 +142,7 @@ impl CellStatsConfig {
 
 #[typetag::serde(name = "cell-stats")]
 impl FeatureExtractorConfig for CellStatsConfig {
-    fn build(&self) -> Result<Box<dyn FeatureExtractor>, BuildError> {
+    fn build(&self, _ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
         self.validate()?;
         Ok(Box::new(CellStats { config: self.clone() }))
     }
@@ -283,8 +283,8 @@ impl CellStats {
 }
 
 impl FeatureExtractor for CellStats {
-    fn extract(&self, images: &[RgbImage]) -> Vec<FeatureMap> {
-        images.par_iter().map(|img| self.extract_one(img)).collect()
+    fn extract(&self, images: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError> {
+        Ok(images.par_iter().map(|img| self.extract_one(img)).collect())
     }
 
     fn identity(&self) -> String {
@@ -463,8 +463,8 @@ mod tests {
         let a = image(64, 48, |_, _| [rng.gen(), 0.5, 0.2]);
         let b = image(48, 64, |c, r| [((c + r) % 5) as f32 / 5.0, 0.1, 0.9]);
         let ex = extractor();
-        let both = ex.extract(&[a.clone(), b.clone()]);
-        assert_eq!(both, ex.extract(&[a.clone(), b.clone()]));
+        let both = ex.extract(&[a.clone(), b.clone()]).unwrap();
+        assert_eq!(both, ex.extract(&[a.clone(), b.clone()]).unwrap());
         assert_eq!(both[0], ex.extract_one(&a));
         assert_eq!(both[1], ex.extract_one(&b));
     }
@@ -618,17 +618,17 @@ mod tests {
     fn toml_round_trip_and_validation() {
         let cfg: Box<dyn FeatureExtractorConfig> =
             toml::from_str("kind = \"cell-stats\"\ncell = 16\norientation_weight = 2.0\n").unwrap();
-        let built = cfg.build().unwrap();
+        let built = cfg.build(&BuildContext::default()).unwrap();
         assert!(built.identity().starts_with("cell-stats/v2 cell=16 "), "{}", built.identity());
         assert!(built.identity().contains("orientation_weight=2 "), "{}", built.identity());
         let text = toml::to_string(&cfg).unwrap();
         assert!(text.contains("kind = \"cell-stats\""), "{text}");
         let back: Box<dyn FeatureExtractorConfig> = toml::from_str(&text).unwrap();
-        assert_eq!(back.build().unwrap().identity(), built.identity());
+        assert_eq!(back.build(&BuildContext::default()).unwrap().identity(), built.identity());
         // Defaults fill in missing keys; unknown keys are rejected with their name.
         let default: Box<dyn FeatureExtractorConfig> =
             toml::from_str("kind = \"cell-stats\"").unwrap();
-        assert_eq!(default.build().unwrap().identity(), extractor().identity());
+        assert_eq!(default.build(&BuildContext::default()).unwrap().identity(), extractor().identity());
         let err =
             toml::from_str::<Box<dyn FeatureExtractorConfig>>("kind = \"cell-stats\"\ncells = 4")
                 .unwrap_err();
@@ -643,7 +643,7 @@ mod tests {
         ] {
             let cfg: Box<dyn FeatureExtractorConfig> =
                 toml::from_str(&format!("kind = \"cell-stats\"\n{text}")).unwrap();
-            match cfg.build() {
+            match cfg.build(&BuildContext::default()) {
                 Err(BuildError::Invalid { key: k, .. }) => assert_eq!(k, key),
                 other => panic!("{text}: expected Invalid, got {:?}", other.map(|e| e.identity())),
             }
@@ -654,9 +654,9 @@ mod tests {
     fn registered_with_a_working_default() {
         let reg = sos_core::registry::find::<dyn FeatureExtractorConfig>("cell-stats").unwrap();
         assert!(!reg.summary.is_empty());
-        let ex = (reg.default_config)().build().unwrap();
+        let ex = (reg.default_config)().build(&BuildContext::default()).unwrap();
         assert_eq!(ex.identity(), extractor().identity());
-        let maps = ex.extract(&[image(16, 16, |_, _| [0.1, 0.2, 0.3])]);
+        let maps = ex.extract(&[image(16, 16, |_, _| [0.1, 0.2, 0.3])]).unwrap();
         assert_eq!((maps[0].height, maps[0].width), (2, 2));
     }
 }

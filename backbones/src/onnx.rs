@@ -25,9 +25,9 @@ use ort::session::Session;
 use ort::value::Tensor;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use sos_core::error::BuildError;
+use sos_core::error::{BuildError, ExtractError};
 use sos_core::image::RgbImage;
-use sos_core::plugin::{FeatureExtractor, FeatureExtractorConfig, FeatureMap};
+use sos_core::plugin::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};
 use sos_core::registry::Registration;
 
 use crate::dino_vit::checkpoint::content_hash;
@@ -47,9 +47,10 @@ pub const RUNTIME_HINT: &str = "ONNX Runtime is loaded from its shared library a
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct OnnxConfig {
-    /// The `.onnx` file (relative paths: against the working directory).
+    /// The `.onnx` file (a relative path: against the config file's folder).
     pub model: PathBuf,
-    /// The ONNX Runtime shared library; default: the `ORT_DYLIB_PATH` environment variable.
+    /// The ONNX Runtime shared library (a relative path: against the config file's folder);
+    /// default: the `ORT_DYLIB_PATH` environment variable.
     pub runtime: Option<PathBuf>,
     /// Name of the model's image input.
     pub input: String,
@@ -172,7 +173,8 @@ impl OnnxModel {
             return Err(resource(format!(
                 "ONNX model `{}` not found; export the backbone to ONNX (see backbones/README.md: \
                  `torch.onnx.export`, or `sos-benchmarks`' `vit_onnx_export` for a DINO ViT checkpoint) \
-                 and set `model` in `[extractor]` to its path",
+                 and set `model` in `[extractor]` to its path (a relative path is resolved against the \
+                 config file's folder)",
                 model.display()
             )));
         }
@@ -233,8 +235,13 @@ impl OnnxConfig {
 
 #[typetag::serde(name = "onnx")]
 impl FeatureExtractorConfig for OnnxConfig {
-    fn build(&self) -> Result<Box<dyn FeatureExtractor>, BuildError> {
-        Ok(Box::new(OnnxExtractor::new(self.clone())?))
+    fn build(&self, ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
+        let resolved = OnnxConfig {
+            model: ctx.resolve(&self.model),
+            runtime: self.runtime.as_deref().map(|r| ctx.resolve(r)),
+            ..self.clone()
+        };
+        Ok(Box::new(OnnxExtractor::new(resolved)?))
     }
 }
 
@@ -386,7 +393,7 @@ fn grid_of(n: usize) -> (usize, usize) {
 }
 
 impl FeatureExtractor for OnnxExtractor {
-    fn extract(&self, images: &[RgbImage]) -> Vec<FeatureMap> {
+    fn extract(&self, images: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError> {
         let valid = |img: &RgbImage| img.width > 0 && img.height > 0 && img.data.len() == img.width * img.height * 3;
         let inputs: Vec<Option<Vec<f32>>> = images
             .par_iter()
@@ -406,21 +413,24 @@ impl FeatureExtractor for OnnxExtractor {
         let mut maps: Vec<Option<FeatureMap>> = vec![None; images.len()];
         let mut channels = 1;
         for chunk in ok.chunks(self.batch) {
-            let batch: Vec<Vec<f32>> = chunk.iter().map(|&i| inputs[i].clone().expect("valid input")).collect();
-            match self.run_batch(&batch) {
-                Ok(out) => {
-                    for (&i, m) in chunk.iter().zip(out) {
-                        channels = m.channels;
-                        maps[i] = Some(m);
-                    }
-                }
-                Err(e) => {
-                    // The trait has no error channel: report once per failing run, give zeros.
-                    eprintln!("onnx extractor: running `{}` failed: {e}", self.config.model.display());
-                }
+            let batch: Vec<Vec<f32>> = chunk.iter().filter_map(|&i| inputs[i].clone()).collect();
+            let out = self.run_batch(&batch).map_err(|e| {
+                ExtractError::new(
+                    KIND,
+                    format!(
+                        "running `{}` on a batch of {} images failed: {e}",
+                        self.config.model.display(),
+                        batch.len()
+                    ),
+                )
+            })?;
+            for (&i, m) in chunk.iter().zip(out) {
+                channels = m.channels;
+                maps[i] = Some(m);
             }
         }
-        maps.into_iter().map(|m| m.unwrap_or_else(|| Self::zero_map(channels))).collect()
+        // Only empty or malformed images are left: zero maps, as `dino-vit` gives them.
+        Ok(maps.into_iter().map(|m| m.unwrap_or_else(|| Self::zero_map(channels))).collect())
     }
 
     fn identity(&self) -> String {

@@ -12,7 +12,7 @@ use sos_backbones::dino_vit::{
 use sos_backbones::fixture::F32Array;
 use sos_core::error::BuildError;
 use sos_core::image::RgbImage;
-use sos_core::plugin::{FeatureExtractor, FeatureExtractorConfig};
+use sos_core::plugin::{BuildContext, FeatureExtractor, FeatureExtractorConfig};
 use support::writers::{pth_bytes, safetensors_bytes, write_pth, write_safetensors, PthOptions, PthTensor};
 use support::{io, max_abs_diff, temp_dir, weights};
 
@@ -106,7 +106,7 @@ fn extractor_features_follow_the_reference_preprocessing() {
     write_pth(&path, &weights("vit_tiny_sharp"), &PthOptions::default());
     let text = format!("kind = \"dino-vit\"\nweights = {:?}\nheads = 2\n", path.display().to_string());
     let cfg: Box<dyn FeatureExtractorConfig> = toml::from_str(&text).unwrap();
-    let ex = cfg.build().unwrap();
+    let ex = cfg.build(&BuildContext::default()).unwrap();
 
     // A 64x64 rendered patch: resized to 224 through 384, normalised twice.
     let mut patch = RgbImage::new(64, 64);
@@ -116,7 +116,7 @@ fn extractor_features_follow_the_reference_preprocessing() {
         }
     }
     let view = RgbImage { width: 250, height: 230, data: (0..250 * 230 * 3).map(|i| (i % 97) as f32 / 96.0).collect() };
-    let maps = ex.extract(&[patch.clone(), view.clone(), RgbImage::new(0, 0), patch.clone()]);
+    let maps = ex.extract(&[patch.clone(), view.clone(), RgbImage::new(0, 0), patch.clone()]).unwrap();
     assert_eq!(maps.len(), 4);
     let model = tiny_model(&StateDict::load(&path).unwrap());
     let pre = Preprocess { ..Preprocess::reference(16) };
@@ -145,11 +145,12 @@ fn extractor_features_follow_the_reference_preprocessing() {
     assert!(id.contains("dim=64 patch=16 depth=2 heads=2 input_size=224 resize=patches"), "{id}");
     let other = dir.join("other.pth");
     write_pth(&other, &weights("vit_tiny"), &PthOptions::default());
-    let ex2 = tiny_config(&other).build().unwrap();
+    let ex2 = tiny_config(&other).build(&BuildContext::default()).unwrap();
     assert_ne!(ex2.identity(), id, "other weights, other identity");
-    let single = DinoVitConfig { double_normalize: false, ..tiny_config(&path) }.build().unwrap();
+    let single =
+        DinoVitConfig { double_normalize: false, ..tiny_config(&path) }.build(&BuildContext::default()).unwrap();
     assert!(single.identity().ends_with("double_normalize=false"));
-    assert_ne!(single.extract(std::slice::from_ref(&patch))[0], *got);
+    assert_ne!(single.extract(std::slice::from_ref(&patch)).unwrap()[0], *got);
 }
 
 #[test]
@@ -179,8 +180,30 @@ fn training_checkpoints_and_strided_tensors_are_read() {
     assert_eq!(sd.entry(name).unwrap().stride, vec![1, 256]);
 }
 
+#[test]
+fn relative_weights_resolve_against_the_config_folder() {
+    let dir = temp_dir("relative");
+    std::fs::create_dir_all(dir.join("models")).unwrap();
+    write_pth(&dir.join("models/tiny.pth"), &weights("vit_tiny"), &PthOptions::default());
+    let cfg = tiny_config(Path::new("models/tiny.pth"));
+    // Found from the config's folder, whatever the working directory.
+    let ex = cfg.build(&BuildContext::new(&dir)).unwrap();
+    let absolute = tiny_config(&dir.join("models/tiny.pth")).build(&BuildContext::new("elsewhere")).unwrap();
+    assert_eq!(ex.identity(), absolute.identity(), "absolute paths are kept as they are");
+    // A missing relative file is named where it was looked for.
+    let msg = match tiny_config(Path::new("models/absent.pth")).build(&BuildContext::new(&dir)) {
+        Ok(_) => panic!("absent weights built"),
+        Err(e) => e.to_string(),
+    };
+    assert!(
+        msg.contains(&dir.join("models/absent.pth").display().to_string()) && msg.contains("config file's folder"),
+        "{msg}"
+    );
+    std::fs::remove_dir_all(dir).ok();
+}
+
 fn build_error(cfg: &DinoVitConfig) -> String {
-    match cfg.build() {
+    match cfg.build(&BuildContext::default()) {
         Ok(_) => panic!("{:?} should not build", cfg.weights),
         Err(e) => e.to_string(),
     }
@@ -263,7 +286,7 @@ fn missing_or_foreign_weights_are_refused_helpfully() {
     // A named architecture that the checkpoint is not.
     let p = dir.join("tiny.safetensors");
     write_safetensors(&p, &w);
-    match (DinoVitConfig { arch: Arch::Vits16, ..tiny_config(&p) }).build() {
+    match (DinoVitConfig { arch: Arch::Vits16, ..tiny_config(&p) }).build(&BuildContext::default()) {
         Err(BuildError::Invalid { key, reason, .. }) => {
             assert_eq!(key, "arch");
             assert!(reason.contains("width 64") && reason.contains("vits16"), "{reason}");
@@ -276,7 +299,10 @@ fn missing_or_foreign_weights_are_refused_helpfully() {
         (DinoVitConfig { input_size: 4, ..tiny_config(&p) }, "input_size"),
         (DinoVitConfig { heads: Some(0), ..tiny_config(&p) }, "heads"),
     ] {
-        assert!(matches!(cfg.build(), Err(BuildError::Invalid { key: k, .. }) if k == key), "{key}");
+        assert!(
+            matches!(cfg.build(&BuildContext::default()), Err(BuildError::Invalid { key: k, .. }) if k == key),
+            "{key}"
+        );
     }
     // Unknown keys are rejected by name.
     let err = toml::from_str::<Box<dyn FeatureExtractorConfig>>("kind = \"dino-vit\"\nweight = \"x.pth\"").unwrap_err();
@@ -301,13 +327,13 @@ fn registered_with_the_reference_defaults() {
     }
     // Without the weights the default refuses with the download hint (it never panics).
     if !Path::new("weights/dino_deitsmall16_pretrain.pth").exists() {
-        let err = (reg.default_config)().build().err().expect("no weights here").to_string();
+        let err = (reg.default_config)().build(&BuildContext::default()).err().expect("no weights here").to_string();
         assert!(err.contains("dl.fbaipublicfiles.com"), "{err}");
     }
     // A random ViT-S/16 has the reference's feature grid for a 64-px patch.
     let vit = Vit::random(VitShape::dino(384, 16, 1, 6), 3);
     let ex = DinoVit::new(vit, Preprocess::reference(16), "random".into(), 8);
-    let maps = ex.extract(&[RgbImage::new(64, 64)]);
+    let maps = ex.extract(&[RgbImage::new(64, 64)]).unwrap();
     assert_eq!((maps[0].channels, maps[0].height, maps[0].width, maps[0].cls.len()), (384, 14, 14, 384));
 }
 
@@ -369,7 +395,7 @@ mod onnx_runtime {
         let images: Vec<RgbImage> = (0..3)
             .map(|k| RgbImage { width: 64, height: 64, data: (0..64 * 64 * 3).map(|i| ((i * (k + 3)) % 101) as f32 / 100.0).collect() })
             .collect();
-        let (a, b) = (onnx.extract(&images), native.extract(&images));
+        let (a, b) = (onnx.extract(&images).unwrap(), native.extract(&images).unwrap());
         for (x, y) in a.iter().zip(&b) {
             assert_eq!((x.channels, x.height, x.width), (y.channels, y.height, y.width));
             assert!(max_abs_diff(&x.data, &y.data) < TOL);

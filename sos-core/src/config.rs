@@ -85,6 +85,10 @@ pub struct SegmentConfig {
     pub patch_size: u32,
     /// Pixels between neighbouring rays of a patch (reduced, with a notice, for small images).
     pub stride: u32,
+    /// Pixels between the allowed patch offsets: a patch's top-left corner lies on multiples
+    /// of this (or at the far edge), so placements recur and the teacher-feature cache hits.
+    /// 0 or 1 = any pixel (the reference's random crops).
+    pub offset_grid: u32,
     /// Adam learning rate of the head.
     pub lr: f32,
     /// Learning-rate factor at the last step (exponential decay).
@@ -108,6 +112,8 @@ impl Default for SegmentConfig {
             patches: 8,
             patch_size: 64,
             stride: 6,
+            // 44 placements per 400x300 view with 64 rays at stride 4, 65 per 504x378 one.
+            offset_grid: 16,
             lr: 1e-3,
             final_lr_factor: 0.3,
             weight_threshold: 1e-3,

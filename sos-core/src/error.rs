@@ -56,6 +56,23 @@ pub enum BuildError {
     },
 }
 
+/// A feature extractor (2D teacher) failed on a batch of images.
+#[derive(Debug, thiserror::Error)]
+#[error("feature extractor `{extractor}`: {message}")]
+pub struct ExtractError {
+    /// Extractor kind, e.g. `onnx`.
+    pub extractor: String,
+    /// What failed (model file, output, batch) and, where possible, what to do.
+    pub message: String,
+}
+
+impl ExtractError {
+    /// An error of the extractor `extractor` from anything displayable.
+    pub fn new(extractor: impl Into<String>, message: impl std::fmt::Display) -> Self {
+        ExtractError { extractor: extractor.into(), message: message.to_string() }
+    }
+}
+
 /// Reading or writing data (images, masks, checkpoints, outputs) failed.
 #[derive(Debug, thiserror::Error)]
 pub enum IoError {
@@ -102,4 +119,13 @@ pub enum RunError {
     /// Training diverged.
     #[error("training diverged: {0}")]
     Diverged(String),
+    /// The 2D teacher failed; `context` says on which images (stage-2 patches of which
+    /// views, or which rendered view).
+    #[error("2D teacher on {context}")]
+    Teacher {
+        /// What the teacher was given.
+        context: String,
+        /// The extractor's error.
+        source: ExtractError,
+    },
 }

@@ -298,3 +298,27 @@ fn a_corrupt_dataset_file_exits_2_naming_it() {
     assert!(stderr.contains("images.bin"), "{stderr}");
     assert!(!stderr.contains("panicked"), "{stderr}");
 }
+
+#[test]
+fn missing_teacher_weights_exit_2_before_stage_1() {
+    let dir = temp_dir("no-weights");
+    std::fs::create_dir_all(dir.join("sub")).unwrap();
+    // Thousands of stage-1 steps: the error must come before any of them.
+    let config = format!(
+        "{}\n[extractor]\nkind = \"dino-vit\"\nweights = \"models/dino.pth\"\n",
+        tiny_config("no-weights", 5000, 10)
+    );
+    std::fs::write(dir.join("sub/dino.toml"), config).unwrap();
+    let started = std::time::Instant::now();
+    let out = sos(&["train", "sub/dino.toml", "--quiet"], &dir);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(started.elapsed().as_secs() < 20, "took {:?}: {stderr}", started.elapsed());
+    // Named where it was looked for: beside the config file, not in the working directory.
+    let expected = dir.join("sub/models/dino.pth");
+    assert!(stderr.contains(&expected.display().to_string()) && stderr.contains("not found"), "{stderr}");
+    assert!(!stderr.contains("stage 1") && !stderr.contains("panicked"), "{stderr}");
+    assert!(text(&out.stdout).is_empty(), "{}", text(&out.stdout));
+    assert!(!dir.join("sub/runs").exists(), "outputs were written");
+    std::fs::remove_dir_all(dir).ok();
+}

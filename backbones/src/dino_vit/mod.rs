@@ -29,9 +29,9 @@ use std::sync::Arc;
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use sos_core::error::BuildError;
+use sos_core::error::{BuildError, ExtractError};
 use sos_core::image::RgbImage;
-use sos_core::plugin::{FeatureExtractor, FeatureExtractorConfig, FeatureMap};
+use sos_core::plugin::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};
 use sos_core::registry::Registration;
 
 pub use arch::Arch;
@@ -48,8 +48,8 @@ const VERSION: u32 = 1;
 #[serde(default, deny_unknown_fields)]
 pub struct DinoVitConfig {
     /// The checkpoint: an official DINO backbone `.pth` (or a training checkpoint holding
-    /// one under `teacher`), or the same state dict as `.safetensors`. Relative paths are
-    /// resolved against the working directory.
+    /// one under `teacher`), or the same state dict as `.safetensors`. A relative path is
+    /// resolved against the config file's folder.
     pub weights: PathBuf,
     /// `vits16`, `vits8`, `vitb16`, `vitb8`, or `auto` (taken from the checkpoint). A named
     /// architecture must match the checkpoint.
@@ -138,6 +138,8 @@ impl DinoVitConfig {
     }
 
     /// Reads the checkpoint and builds the model, with errors that name the file and the fix.
+    /// `weights` is opened as it is (relative to the working directory); [`FeatureExtractorConfig::build`]
+    /// resolves it against the config file's folder first.
     pub fn load_model(&self) -> Result<(Vit, u64), BuildError> {
         self.validate()?;
         let path = &self.weights;
@@ -145,7 +147,7 @@ impl DinoVitConfig {
             let shown = std::path::absolute(path).unwrap_or_else(|_| path.clone());
             return Err(resource(format!(
                 "weights file `{}` not found: {} and save it there, or set `weights` in `[extractor]` to where \
-                 it is (relative paths are resolved against the working directory). `kind = \"cell-stats\"` \
+                 it is (a relative path is resolved against the config file's folder). `kind = \"cell-stats\"` \
                  needs no weights",
                 shown.display(),
                 download_hint(self.arch)
@@ -197,8 +199,9 @@ impl DinoVitConfig {
 
 #[typetag::serde(name = "dino-vit")]
 impl FeatureExtractorConfig for DinoVitConfig {
-    fn build(&self) -> Result<Box<dyn FeatureExtractor>, BuildError> {
-        let (model, hash) = self.load_model()?;
+    fn build(&self, ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
+        let resolved = DinoVitConfig { weights: ctx.resolve(&self.weights), ..self.clone() };
+        let (model, hash) = resolved.load_model()?;
         let pre = self.preprocess(model.shape.patch);
         Ok(Box::new(DinoVit::new(model, pre, format!("{hash:016x}"), self.batch)))
     }
@@ -281,7 +284,7 @@ pub fn feature_maps(out: &VitOutput) -> Vec<FeatureMap> {
 }
 
 impl FeatureExtractor for DinoVit {
-    fn extract(&self, images: &[RgbImage]) -> Vec<FeatureMap> {
+    fn extract(&self, images: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError> {
         let valid = |img: &RgbImage| img.width > 0 && img.height > 0 && img.data.len() == img.width * img.height * 3;
         let inputs: Vec<Option<preprocess::Tensor3>> =
             images.par_iter().map(|img| valid(img).then(|| self.preprocess.apply(img))).collect();
@@ -309,7 +312,8 @@ impl FeatureExtractor for DinoVit {
             }
             i = j;
         }
-        out.into_iter().map(|m| m.expect("every image has features")).collect()
+        // The native forward cannot fail on valid inputs; invalid ones got empty maps above.
+        Ok(out.into_iter().map(|m| m.unwrap_or_else(|| self.empty_map())).collect())
     }
 
     fn identity(&self) -> String {

@@ -1,6 +1,8 @@
 //! The 2D teacher role: a frozen backbone that turns image patches into feature maps.
 
-use crate::error::BuildError;
+use std::path::{Path, PathBuf};
+
+use crate::error::{BuildError, ExtractError};
 use crate::image::RgbImage;
 use crate::registry::Registration;
 
@@ -25,9 +27,10 @@ pub struct FeatureMap {
 
 /// A frozen 2D feature extractor (hot path).
 pub trait FeatureExtractor: Send + Sync {
-    /// Extracts features of each image. Images may have any size; implementations resize as
-    /// their preprocessing specifies.
-    fn extract(&self, images: &[RgbImage]) -> Vec<FeatureMap>;
+    /// Extracts features of each image, one map per image in order. Images may have any
+    /// size; implementations resize as their preprocessing specifies. Fails when the backbone
+    /// cannot run (e.g. ONNX Runtime rejects the batch), never with a partial result.
+    fn extract(&self, images: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError>;
 
     /// A string that changes whenever the features would change (kind, settings, weights
     /// hash); used as the teacher-feature cache key.
@@ -37,8 +40,50 @@ pub trait FeatureExtractor: Send + Sync {
 /// Configuration of a feature extractor, chosen by `[extractor] kind = "..."`.
 #[typetag::serde(tag = "kind")]
 pub trait FeatureExtractorConfig: std::fmt::Debug + Send + Sync {
-    /// Validates the settings, loads weights and builds the extractor.
-    fn build(&self) -> Result<Box<dyn FeatureExtractor>, BuildError>;
+    /// Validates the settings, loads weights (relative paths resolved with
+    /// [`BuildContext::resolve`]) and builds the extractor.
+    fn build(&self, ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError>;
+}
+
+/// What building an extractor needs from the run besides its own settings.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct BuildContext {
+    /// Folder of the config file (empty: the working directory).
+    pub config_dir: PathBuf,
+}
+
+impl BuildContext {
+    /// A context for a config file in `config_dir`.
+    pub fn new(config_dir: impl Into<PathBuf>) -> Self {
+        BuildContext { config_dir: config_dir.into() }
+    }
+
+    /// A path from the config: absolute paths as they are, relative ones against the config
+    /// file's folder (like every other path of a run config), so a run does not depend on
+    /// the working directory.
+    pub fn resolve(&self, path: &Path) -> PathBuf {
+        if path.is_absolute() {
+            path.to_path_buf()
+        } else {
+            self.config_dir.join(path)
+        }
+    }
 }
 
 inventory::collect!(Registration<dyn FeatureExtractorConfig>);
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn relative_paths_resolve_against_the_config_folder_absolute_ones_stay() {
+        let ctx = BuildContext::new("configs/run");
+        assert_eq!(ctx.resolve(Path::new("models/dino.pth")), Path::new("configs/run/models/dino.pth"));
+        assert_eq!(ctx.resolve(Path::new("../weights/a.pth")), Path::new("configs/run/../weights/a.pth"));
+        let absolute = std::env::temp_dir().join("dino.pth");
+        assert_eq!(ctx.resolve(&absolute), absolute);
+        // A config in the working directory has an empty folder: paths stay relative to it.
+        assert_eq!(BuildContext::default().resolve(Path::new("w.pth")), Path::new("w.pth"));
+    }
+}

@@ -8,7 +8,7 @@ pub mod loss;
 pub mod miner;
 
 pub use dataset::DatasetConfig;
-pub use extractor::{FeatureExtractor, FeatureExtractorConfig, FeatureMap};
+pub use extractor::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};
 pub use field::{FieldTape, RadianceField, RadianceFieldConfig};
 pub use loss::{ContrastiveLoss, ContrastiveLossConfig, LossValue, PatchBatch};
 pub use miner::{PairMiner, PairMinerConfig};

@@ -375,7 +375,7 @@ impl<'a> MaskInference<'a> {
         let focus = self.focus.point_for(&r.depth, w, h).unwrap_or_else(|| self.session.scene.focus_point());
         let fg = match masks.foreground {
             ForegroundRule::Saliency => {
-                let saliency = self.saliency(&r.rgb)?;
+                let saliency = self.saliency(&r.rgb, name)?;
                 foreground_by_saliency(&km.labels, km.k, &saliency)
             }
             ForegroundRule::Focus => foreground_by_focus(&km.labels, km.k, &r.points, focus),
@@ -387,10 +387,13 @@ impl<'a> MaskInference<'a> {
         })
     }
 
-    /// The extractor's saliency of a rendered image, upsampled to its pixels.
-    fn saliency(&self, rgb: &RgbImage) -> Result<Vec<f32>, RunError> {
+    /// The extractor's saliency of a rendered image (of the view `name`), upsampled to its
+    /// pixels.
+    fn saliency(&self, rgb: &RgbImage, name: &str) -> Result<Vec<f32>, RunError> {
         let extractor = self.extractor.ok_or_else(|| no_saliency(self.session, "no feature extractor is available"))?;
-        let features = extractor.extract(std::slice::from_ref(rgb));
+        let features = extractor
+            .extract(std::slice::from_ref(rgb))
+            .map_err(|source| RunError::Teacher { context: format!("the rendered view {name} (saliency)"), source })?;
         let f = features.first().ok_or_else(|| no_saliency(self.session, "the extractor returned no features"))?;
         let grid = f.saliency.as_ref().ok_or_else(|| {
             no_saliency(self.session, &format!("the extractor `{}` gives no saliency map", extractor.identity()))
@@ -409,8 +412,9 @@ pub fn saliency_extractor(session: &Session) -> Result<Option<Box<dyn FeatureExt
     if session.config.masks.foreground != ForegroundRule::Saliency {
         return Ok(None);
     }
-    let config = match &session.config.extractor {
-        Some(e) => e.build()?,
+    let ctx = session.build_context();
+    let extractor = match &session.config.extractor {
+        Some(e) => e.build(&ctx)?,
         None => crate::segment::defaults::extractor()
             .ok_or_else(|| {
                 no_saliency(
@@ -418,9 +422,9 @@ pub fn saliency_extractor(session: &Session) -> Result<Option<Box<dyn FeatureExt
                     &format!("no `[extractor]` is configured and `{}` is not linked", crate::segment::defaults::DEFAULT_EXTRACTOR),
                 )
             })?
-            .build()?,
+            .build(&ctx)?,
     };
-    Ok(Some(config))
+    Ok(Some(extractor))
 }
 
 fn no_saliency(session: &Session, why: &str) -> RunError {

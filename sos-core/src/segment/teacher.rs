@@ -3,8 +3,10 @@
 //! features — cannot change then.
 
 use std::collections::HashMap;
+use std::time::Instant;
 
 use crate::config::TeacherSource;
+use crate::error::{ExtractError, RunError};
 use crate::image::RgbImage;
 use crate::plugin::{FeatureExtractor, FeatureMap};
 use crate::scene::Scene;
@@ -19,13 +21,15 @@ pub struct Teacher {
     pub hits: usize,
     /// Patches computed by the extractor.
     pub misses: usize,
+    /// Wall-clock seconds spent in the extractor.
+    pub seconds: f64,
 }
 
 impl Teacher {
     /// A teacher; `cache` only takes effect while [`Teacher::features`] is told the field is
     /// frozen.
     pub fn new(extractor: Box<dyn FeatureExtractor>, source: TeacherSource, cache: bool) -> Self {
-        Teacher { extractor, source, cache: cache.then(HashMap::new), hits: 0, misses: 0 }
+        Teacher { extractor, source, cache: cache.then(HashMap::new), hits: 0, misses: 0, seconds: 0.0 }
     }
 
     /// The extractor (e.g. to compute saliency of whole views).
@@ -36,7 +40,14 @@ impl Teacher {
     /// Features of each patch. `rendered[i]` is patch `i` as rendered by the field; with
     /// `teacher_source = "captured"` the photograph's pixels at the patch grid are used
     /// instead. `frozen` says whether rendered patches are reproducible (cache allowed).
-    pub fn features(&mut self, scene: &Scene, patches: &[Patch], rendered: &[RgbImage], frozen: bool) -> Vec<FeatureMap> {
+    /// An extractor failure is an error naming the patches' views.
+    pub fn features(
+        &mut self,
+        scene: &Scene,
+        patches: &[Patch],
+        rendered: &[RgbImage],
+        frozen: bool,
+    ) -> Result<Vec<FeatureMap>, RunError> {
         let cacheable = frozen || self.source == TeacherSource::Captured;
         let mut out: Vec<Option<FeatureMap>> = vec![None; patches.len()];
         if let (Some(cache), true) = (&self.cache, cacheable) {
@@ -55,7 +66,19 @@ impl Teacher {
                     TeacherSource::Captured => captured_patch(scene, &patches[i]),
                 })
                 .collect();
-            let feats = self.extractor.extract(&inputs);
+            let started = Instant::now();
+            let feats = self.extractor.extract(&inputs).and_then(|f| {
+                if f.len() == inputs.len() {
+                    Ok(f)
+                } else {
+                    // A broken implementation, named by its full identity.
+                    let message = format!("returned {} feature maps for {} images", f.len(), inputs.len());
+                    Err(ExtractError::new(self.extractor.identity(), message))
+                }
+            });
+            self.seconds += started.elapsed().as_secs_f64();
+            let feats = feats
+                .map_err(|source| RunError::Teacher { context: patch_context(scene, patches, &missing), source })?;
             for (&i, f) in missing.iter().zip(feats) {
                 if let (Some(cache), true) = (self.cache.as_mut(), cacheable) {
                     cache.insert(patches[i], f.clone());
@@ -63,8 +86,21 @@ impl Teacher {
                 out[i] = Some(f);
             }
         }
-        out.into_iter().map(|f| f.expect("every patch has features")).collect()
+        // Every entry is filled: from the cache or from the extractor's checked output.
+        Ok(out.into_iter().flatten().collect())
     }
+}
+
+/// Which patches the teacher was given, for error messages.
+fn patch_context(scene: &Scene, patches: &[Patch], which: &[usize]) -> String {
+    let names: Vec<String> = which
+        .iter()
+        .map(|&i| {
+            let p = &patches[i];
+            format!("{} at ({}, {})", scene.views[p.view].name, p.grid.col0, p.grid.row0)
+        })
+        .collect();
+    format!("stage-2 patches of views {}", names.join(", "))
 }
 
 /// The photograph's pixels at a patch's ray positions.
@@ -79,4 +115,64 @@ pub fn captured_patch(scene: &Scene, patch: &Patch) -> RgbImage {
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::rays::PatchGrid;
+    use crate::testing::scene::blank_scene;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    /// Counts the images it is given; fails on batches larger than `fail_above`.
+    struct Counting {
+        images: AtomicUsize,
+        fail_above: usize,
+    }
+
+    impl FeatureExtractor for Counting {
+        fn extract(&self, images: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError> {
+            if images.len() > self.fail_above {
+                return Err(ExtractError::new("counting", "the runtime rejected the batch"));
+            }
+            self.images.fetch_add(images.len(), Ordering::Relaxed);
+            let map = FeatureMap { channels: 1, height: 1, width: 1, data: vec![1.0], cls: vec![1.0], saliency: None };
+            Ok(vec![map; images.len()])
+        }
+
+        fn identity(&self) -> String {
+            "counting/v1".into()
+        }
+    }
+
+    fn teacher(fail_above: usize) -> Teacher {
+        let extractor = Counting { images: AtomicUsize::new(0), fail_above };
+        Teacher::new(Box::new(extractor), TeacherSource::Captured, true)
+    }
+
+    fn patch(view: usize, col0: u32) -> Patch {
+        Patch { view, grid: PatchGrid { col0, row0: 0, size: 4, stride: 1 } }
+    }
+
+    #[test]
+    fn repeated_placements_hit_the_cache() {
+        let scene = blank_scene(3, 16, 8);
+        let mut t = teacher(usize::MAX);
+        let first = [patch(0, 0), patch(1, 0), patch(2, 4)];
+        assert_eq!(t.features(&scene, &first, &[], true).unwrap().len(), 3);
+        let again = [patch(2, 4), patch(0, 0), patch(0, 8)];
+        assert_eq!(t.features(&scene, &again, &[], true).unwrap().len(), 3);
+        assert_eq!((t.hits, t.misses), (2, 4));
+    }
+
+    #[test]
+    fn an_extractor_failure_is_an_error_naming_the_views() {
+        let scene = blank_scene(3, 16, 8);
+        let mut t = teacher(1);
+        let err = t.features(&scene, &[patch(1, 0), patch(2, 4)], &[], true).unwrap_err();
+        assert!(matches!(err, RunError::Teacher { .. }), "{err:?}");
+        let chain = format!("{err}: {}", std::error::Error::source(&err).unwrap());
+        assert!(chain.contains("v1 at (0, 0)") && chain.contains("v2 at (4, 0)"), "{chain}");
+        assert!(chain.contains("counting") && chain.contains("rejected"), "{chain}");
+    }
 }

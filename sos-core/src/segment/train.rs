@@ -4,22 +4,27 @@
 use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
-use rand::SeedableRng;
+use rand::{Rng, SeedableRng};
 
 use crate::config::LossEntry;
 use crate::error::{BuildError, RunError};
 use crate::image::RgbImage;
 use crate::plugin::{ContrastiveLoss, PairMiner, PatchBatch};
-use crate::render::composite::{RayGrad, EMPTY_RAY_DEPTH};
-use crate::render::renderer::render;
+use crate::render::composite::{RayColor, RayGrad, EMPTY_RAY_DEPTH};
+use crate::render::rays::RayBatch;
+use crate::render::renderer::{render, Rendered};
 use crate::segment::defaults;
 use crate::segment::head::SegHead;
-use crate::segment::patches::{patch_rays, PatchSampler};
+use crate::segment::patches::{patch_rays, Patch, PatchSampler};
 use crate::segment::teacher::{captured_patch, Teacher};
 use crate::train::session::{kind_of, Session};
 
 /// Consecutive non-finite losses after which stage 2 stops.
 const MAX_BAD_STEPS: usize = 20;
+
+/// Offset of the patch sampler's seed from the run's (its own stream, so the patch sequence
+/// does not depend on what else a step draws).
+const PATCH_SEED: u64 = 0x9A7C;
 
 /// A built loss term with its weight and name.
 pub struct WeightedLoss {
@@ -69,11 +74,12 @@ impl Segmenter {
     /// Builds the head, teacher, miner and losses from the session's config.
     pub fn build(session: &Session) -> Result<Segmenter, RunError> {
         let cfg = &session.config;
-        let extractor_cfg = match &cfg.extractor {
-            Some(e) => e.build()?,
+        let ctx = session.build_context();
+        let extractor = match &cfg.extractor {
+            Some(e) => e.build(&ctx)?,
             None => defaults::extractor()
                 .ok_or_else(|| missing("extractor", defaults::DEFAULT_EXTRACTOR, "extractor"))?
-                .build()?,
+                .build(&ctx)?,
         };
         let miner = match &cfg.miner {
             Some(m) => m.build()?,
@@ -91,7 +97,7 @@ impl Segmenter {
             .map(|e| Ok(WeightedLoss { name: kind_of(&e.loss), weight: e.weight, loss: e.loss.build()? }))
             .collect::<Result<Vec<_>, RunError>>()?;
         let seg = &cfg.segment;
-        let sampler = PatchSampler::new(seg.patch_size, seg.stride);
+        let sampler = PatchSampler::new(seg.patch_size, seg.stride, seg.offset_grid, cfg.seed.wrapping_add(PATCH_SEED));
         sampler.check(&session.scene).map_err(|message| {
             RunError::Config(crate::error::ConfigError::Invalid {
                 path: session.config_dir.clone(),
@@ -101,7 +107,7 @@ impl Segmenter {
         })?;
         Ok(Segmenter {
             head: SegHead::new(&cfg.head, session.field.seg_input_dim(), seg.lr, cfg.seed),
-            teacher: Teacher::new(extractor_cfg, seg.teacher_source, seg.cache_teacher),
+            teacher: Teacher::new(extractor, seg.teacher_source, seg.cache_teacher),
             miner,
             losses,
             sampler,
@@ -139,19 +145,13 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
     let mut last = SegStepStats::default();
     let mut bad_steps = 0;
     while seg.step < cfg.steps {
-        let patches = seg.sampler.next_batch(&session.scene, n_patches, &mut rng);
+        let patches = seg.sampler.next_batch(&session.scene, n_patches);
         for notice in seg.sampler.take_notices() {
             bar.println(format!("notice: {notice}"));
         }
         let timer = Instant::now();
         let rays = patch_rays(&session.scene, &patches);
-        let mut options = session.render_options(false);
-        if !joint {
-            // Density is frozen: samples with negligible weight cannot matter.
-            options.min_weight = cfg.weight_threshold;
-        }
-        let mut r = render(session.field.as_ref(), session.render_context(), &rays, options, joint, &mut rng);
-        r.composite(&[], 0);
+        let mut r = render_rays(session, &rays, joint, &mut rng);
 
         // Head on the surviving samples, then logits composited with the field's weights.
         let n_samples = r.samples.len();
@@ -173,17 +173,16 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
         let mut depth: Vec<f32> = r.colors.iter().map(|c| c.depth).collect();
         fill_empty_depths(&mut depth);
         let mut points = vec![0.0f32; n_patches * 3 * rays_per_patch];
-        let mut rendered = vec![RgbImage::new(p, p); n_patches];
         for ray in 0..rays.len() {
             let (patch, pix) = (ray / rays_per_patch, ray % rays_per_patch);
             let (o, d) = (rays.origins[ray], rays.directions[ray]);
             for a in 0..3 {
                 points[(patch * 3 + a) * rays_per_patch + pix] = o[a] + d[a] * depth[ray];
             }
-            rendered[patch].data[pix * 3..pix * 3 + 3].copy_from_slice(&r.colors[ray].rgb);
         }
+        let rendered = patch_images(&r.colors, p);
         let t_render = timer.elapsed().as_secs_f64();
-        let features = seg.teacher.features(&session.scene, &patches, &rendered, !joint);
+        let features = seg.teacher.features(&session.scene, &patches, &rendered, !joint)?;
         let t_teacher = timer.elapsed().as_secs_f64();
         let cls: Vec<Vec<f32>> = features.iter().map(|f| f.cls.clone()).collect();
         let negatives = seg.miner.negatives(&cls, &mut rng);
@@ -293,8 +292,45 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
     Ok(last)
 }
 
+/// Renders patch rays as a stage-2 step does. With the density frozen (`joint = false`),
+/// samples whose compositing weight is below `segment.weight_threshold` are skipped: they
+/// cannot matter.
+fn render_rays(session: &Session, rays: &RayBatch, joint: bool, rng: &mut impl Rng) -> Rendered {
+    let mut options = session.render_options(false);
+    if !joint {
+        options.min_weight = session.config.segment.weight_threshold;
+    }
+    let mut r = render(session.field.as_ref(), session.render_context(), rays, options, joint, rng);
+    r.composite(&[], 0);
+    r
+}
+
+/// Rendered colours of `p x p` patches, patch after patch, as images.
+fn patch_images(colors: &[RayColor], p: usize) -> Vec<RgbImage> {
+    colors
+        .chunks(p * p)
+        .map(|patch| {
+            let mut img = RgbImage::new(p, p);
+            for (px, c) in img.data.chunks_exact_mut(3).zip(patch) {
+                px.copy_from_slice(&c.rgb);
+            }
+            img
+        })
+        .collect()
+}
+
+/// The frozen field's rendering of each patch as a stage-2 step renders it: the teacher's
+/// input with `teacher_source = "rendered"` (e.g. to fill the teacher cache ahead of steps).
+pub fn render_patches(session: &Session, patches: &[Patch]) -> Vec<RgbImage> {
+    let rays = patch_rays(&session.scene, patches);
+    // Evaluation marching is not stratified: the generator does not change the result.
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed);
+    let r = render_rays(session, &rays, false, &mut rng);
+    patch_images(&r.colors, session.config.segment.patch_size as usize)
+}
+
 /// The photographs' colours at each patch ray, patch after patch.
-fn captured_targets(session: &Session, patches: &[crate::segment::patches::Patch]) -> Vec<[f32; 3]> {
+fn captured_targets(session: &Session, patches: &[Patch]) -> Vec<[f32; 3]> {
     patches
         .iter()
         .flat_map(|patch| {
@@ -304,7 +340,7 @@ fn captured_targets(session: &Session, patches: &[crate::segment::patches::Patch
         .collect()
 }
 
-fn patch_mse(colors: &[crate::render::composite::RayColor], targets: &[[f32; 3]]) -> f64 {
+fn patch_mse(colors: &[RayColor], targets: &[[f32; 3]]) -> f64 {
     let sum: f64 = colors
         .iter()
         .zip(targets)

@@ -1,3 +1,4 @@
-//! Helpers shared by tests: reading the reference fixtures.
+//! Helpers shared by tests: reading the reference fixtures, blank scenes.
 
 pub mod fixture;
+pub mod scene;

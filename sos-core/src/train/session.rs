@@ -9,7 +9,7 @@ use crate::camera::Camera;
 use crate::config::RunConfig;
 use crate::error::RunError;
 use crate::image::RgbImage;
-use crate::plugin::RadianceField;
+use crate::plugin::{BuildContext, RadianceField};
 use crate::render::contraction::Contraction;
 use crate::render::occupancy::OccupancyGrid;
 use crate::render::rays::RayBatch;
@@ -88,6 +88,12 @@ impl Session {
             occupancy,
             step: 0,
         })
+    }
+
+    /// What plugins built for this run need: relative paths resolve against the config's
+    /// folder.
+    pub fn build_context(&self) -> BuildContext {
+        BuildContext::new(&self.config_dir)
     }
 
     /// Path of the run's checkpoint.

@@ -7,6 +7,7 @@ use std::time::Instant;
 use anyhow::{bail, Context};
 use sos_core::segment::infer::saliency_extractor;
 use sos_core::segment::store::load_with_head;
+use sos_core::segment::train::Segmenter;
 use sos_core::train::Session;
 
 use super::stage2;
@@ -36,7 +37,8 @@ pub fn run(config: &Path, checkpoint: Option<&Path>, masks_only: bool, progress:
                 config.display()
             );
         }
-        let s2 = stage2::train(&mut session, progress)?;
+        let seg = Segmenter::build(&session)?;
+        let s2 = stage2::train(&mut session, seg, progress)?;
         let masks = stage2::masks(&session, &s2.seg.head, Some(s2.seg.teacher.extractor()), true)?;
         stage2::report(&session, s2.seg.step, Some(s2.seconds), Some(&s2.stats), &masks)
     };

@@ -22,10 +22,9 @@ pub struct Stage2 {
     pub seconds: f64,
 }
 
-/// Builds and trains stage 2, then saves the head next to the field in the run's checkpoint.
-pub fn train(session: &mut Session, progress: bool) -> anyhow::Result<Stage2> {
+/// Trains a built stage 2 ([`Segmenter::build`]), then saves the head next to the field in the run's checkpoint.
+pub fn train(session: &mut Session, mut seg: Segmenter, progress: bool) -> anyhow::Result<Stage2> {
     let started = Instant::now();
-    let mut seg = Segmenter::build(session)?;
     eprintln!(
         "stage 2: {} steps of {} patches of {}x{} rays, head with {} parameters",
         session.config.segment.steps,

@@ -5,6 +5,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::Context;
+use sos_core::segment::train::Segmenter;
 use sos_core::train::evaluate::evaluate_views;
 use sos_core::train::photometric::train_photometric;
 use sos_core::train::Session;
@@ -14,6 +15,8 @@ use super::stage2;
 pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
     let started = Instant::now();
     let mut session = Session::open(config)?;
+    // Stage 2's teacher is loaded now: a missing weights file should not wait for stage 1.
+    let segmenter = if session.config.segment.steps > 0 { Some(Segmenter::build(&session)?) } else { None };
     eprintln!(
         "scene `{}`: {} views ({} train, {} test), {}x{}; field `{}` with {} parameters",
         session.scene.name,
@@ -57,8 +60,8 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
     );
     println!("render speed {:.0} rays/s; outputs in {}", eval.render_rays_per_second, session.run_dir.display());
 
-    if session.config.segment.steps > 0 {
-        let s2 = stage2::train(&mut session, progress)?;
+    if let Some(seg) = segmenter {
+        let s2 = stage2::train(&mut session, seg, progress)?;
         let masks = stage2::masks(&session, &s2.seg.head, Some(s2.seg.teacher.extractor()), true)?;
         report["stage2"] = stage2::report(&session, s2.seg.step, Some(s2.seconds), Some(&s2.stats), &masks);
         report["timing"]["stage2_seconds"] = s2.seconds.into();
