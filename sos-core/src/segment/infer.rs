@@ -194,8 +194,13 @@ pub fn focus_voters(points: &[Option<Vec3>], focus: Vec3) -> Vec<usize> {
 /// that is merely close on average (the ground under the object) does not. Pixels without a
 /// point (empty rays) do not vote; with no points at all, cluster 0 is returned.
 pub fn foreground_by_focus(labels: &[u32], k: usize, points: &[Option<Vec3>], focus: Vec3) -> usize {
+    foreground_by_votes(labels, k, &focus_voters(points, focus))
+}
+
+/// The cluster (of `k`) holding most of the `voters` (pixel indices); ties to the lower index.
+fn foreground_by_votes(labels: &[u32], k: usize, voters: &[usize]) -> usize {
     let mut votes = vec![0usize; k.max(1)];
-    for i in focus_voters(points, focus) {
+    for &i in voters {
         if let Some(v) = votes.get_mut(labels[i] as usize) {
             *v += 1;
         }
@@ -373,17 +378,19 @@ impl<'a> MaskInference<'a> {
         let (w, h) = (r.rgb.width, r.rgb.height);
         // Nothing rendered in the centre: fall back to where the cameras look.
         let focus = self.focus.point_for(&r.depth, w, h).unwrap_or_else(|| self.session.scene.focus_point());
+        // Computed once: the `focus` rule votes with them and `keep = "connected"` seeds from them.
+        let voters = focus_voters(&r.points, focus);
         let fg = match masks.foreground {
             ForegroundRule::Saliency => {
                 let saliency = self.saliency(&r.rgb, name)?;
                 foreground_by_saliency(&km.labels, km.k, &saliency)
             }
-            ForegroundRule::Focus => foreground_by_focus(&km.labels, km.k, &r.points, focus),
+            ForegroundRule::Focus => foreground_by_votes(&km.labels, km.k, &voters),
         };
         let mask = ViewMask::new(km.labels, km.k, fg, r.rgb);
         Ok(match masks.keep {
             KeepRegions::All => mask,
-            KeepRegions::Connected => mask.keep_regions_of(&focus_voters(&r.points, focus)),
+            KeepRegions::Connected => mask.keep_regions_of(&voters),
         })
     }
 
