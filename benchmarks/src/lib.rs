@@ -1,5 +1,10 @@
 //! Shared helpers for the benchmark binaries.
 
+/// The same allocator as the `sos` binary, so benchmarks time what users run (each timing
+/// binary also calls `sos_core::train::memory::keep_freed_memory` first, as `sos` does).
+#[global_allocator]
+static ALLOCATOR: sos_core::train::memory::MiMalloc = sos_core::train::memory::MiMalloc;
+
 /// CPU seconds (user + system, all threads) this process has used so far, from
 /// `/proc/self/stat` (Linux; `None` elsewhere). Unlike wall-clock time it does not count
 /// time the cores spend on other processes, but it does count idle spinning of thread pools,

@@ -10,6 +10,10 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
+/// An allocator that keeps freed pages for the next training step (see `train::memory`).
+#[global_allocator]
+static ALLOCATOR: sos_core::train::memory::MiMalloc = sos_core::train::memory::MiMalloc;
+
 // Force-link every plugin crate so their registrations are present.
 use sos_plugins as _;
 
@@ -90,6 +94,7 @@ enum Command {
 }
 
 fn main() -> ExitCode {
+    sos_core::train::memory::keep_freed_memory();
     let cli = Cli::parse();
     let progress = !cli.quiet && std::io::stderr().is_terminal();
     let result = match cli.command {

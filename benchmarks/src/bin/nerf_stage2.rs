@@ -27,6 +27,8 @@
 //! Wall time depends on what else runs on the machine; each line also gives the process's CPU
 //! seconds per step and the load average.
 
+// Links the shared helpers, which install the same allocator as `sos`.
+use sos_benchmarks as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -349,6 +351,7 @@ fn density_stats(checkpoint: &Path) {
 }
 
 fn main() {
+    sos_core::train::memory::keep_freed_memory();
     let args: Vec<String> = std::env::args().collect();
     let what = args.get(1).map(String::as_str).unwrap_or("speed");
     let checkpoint =

@@ -13,6 +13,8 @@
 //! `cargo run --release -p sos-benchmarks --bin nerf_step [repeats]`; threads: `RAYON_NUM_THREADS`
 //! (default 2).
 
+// Links the shared helpers, which install the same allocator as `sos`.
+use sos_benchmarks as _;
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -282,6 +284,7 @@ fn blocked(mlp: &NerfMlp, rows: usize) -> Vec<Gemm> {
 }
 
 fn main() {
+    sos_core::train::memory::keep_freed_memory();
     let repeats: usize = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(3);
     let threads = std::env::var("RAYON_NUM_THREADS").ok().and_then(|s| s.parse().ok()).unwrap_or(2);
     rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().expect("rayon pool");

@@ -5,6 +5,7 @@ pub mod cleanup;
 pub mod defaults;
 pub mod evaluate;
 pub mod head;
+pub mod head_pass;
 pub mod infer;
 pub mod patches;
 pub mod store;

@@ -15,6 +15,7 @@ use crate::render::rays::RayBatch;
 use crate::render::renderer::{render, Rendered};
 use crate::segment::defaults;
 use crate::segment::head::SegHead;
+use crate::segment::head_pass;
 use crate::segment::patches::{patch_rays, Patch, PatchSampler};
 use crate::segment::teacher::{captured_patch, Teacher};
 use crate::train::session::{kind_of, Session};
@@ -155,9 +156,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
 
         // Head on the surviving samples, then logits composited with the field's weights.
         let n_samples = r.samples.len();
-        let mut seg_in = vec![0.0; n_samples * session.field.seg_input_dim()];
-        session.field.seg_input(&r.samples.positions, &mut seg_in);
-        let (sample_logits, tape) = seg.head.forward(&seg_in, n_samples);
+        let sample_logits = head_pass::sample_logits(session.field.as_ref(), &seg.head, &r.samples.positions);
         let mut logits = vec![0.0f32; n_patches * d_seg * rays_per_patch];
         for ray in 0..rays.len() {
             let (patch, pix) = (ray / rays_per_patch, ray % rays_per_patch);
@@ -238,7 +237,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
                 }
             }
         }
-        seg.head.backward(&tape, &grad_sample);
+        head_pass::backward(session.field.as_ref(), &mut seg.head, &r.samples.positions, &grad_sample);
         let lr_factor = cfg.final_lr_factor.powf(seg.step as f32 / cfg.steps.max(1) as f32);
         seg.head.step(lr_factor);
         if std::env::var("SOS_PROFILE").is_ok() {
