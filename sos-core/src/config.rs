@@ -169,6 +169,10 @@ pub struct MaskConfig {
     pub foreground: ForegroundRule,
     /// Which regions of the foreground cluster make the mask (see [`KeepRegions`]).
     pub keep: KeepRegions,
+    /// With `keep = "connected"`: the largest relative step of rendered depth between
+    /// neighbouring pixels of one region, so that background touching the object's silhouette
+    /// in the image is not connected to it; 0 = image connectivity alone.
+    pub max_depth_jump: f32,
 }
 
 /// Which connected regions of the foreground cluster are kept in the mask.
@@ -191,6 +195,7 @@ impl Default for MaskConfig {
             normalize: false,
             foreground: ForegroundRule::Focus,
             keep: KeepRegions::Connected,
+            max_depth_jump: 0.1,
         }
     }
 }
@@ -358,6 +363,9 @@ impl RunConfig {
         }
         if self.masks.restarts == 0 {
             return Err(invalid("masks.restarts", "must be at least 1"));
+        }
+        if !(self.masks.max_depth_jump >= 0.0 && self.masks.max_depth_jump.is_finite()) {
+            return Err(invalid("masks.max_depth_jump", "must be zero (off) or positive, e.g. 0.1"));
         }
         for (i, l) in self.loss.iter().enumerate() {
             if !(l.weight >= 0.0 && l.weight.is_finite()) {

@@ -8,19 +8,24 @@ pub const fn positional_encoding_dim(dim: usize, frequencies: usize) -> usize {
 /// NeRF's positional encoding, in the reference's order: `[x, sin(2⁰x), cos(2⁰x), …,
 /// sin(2^(L−1)x), cos(2^(L−1)x)]`, where each sin and cos is applied to all of `x` at once
 /// (no π factor). `out.len()` must be [`positional_encoding_dim`].
+///
+/// Only the first octave calls `sin_cos`; each further octave follows from the previous one by
+/// the double-angle formulas. The error then grows about 2× per octave, to 4e-5 at the 10th
+/// (measured by the test below), under the phase uncertainty `2^(L−1)·ulp(x)` (1e-4 for
+/// |x| ≈ π) that the top octave inherits from the rounding of `x` itself. A stage-2 step
+/// encodes a million samples twice, so this saves most of its `sin`/`cos` time.
 pub fn positional_encoding(x: &[f32], frequencies: usize, out: &mut [f32]) {
     let d = x.len();
     assert_eq!(out.len(), positional_encoding_dim(d, frequencies), "encoding width");
     out[..d].copy_from_slice(x);
-    let mut scale = 1.0f32;
-    for l in 0..frequencies {
-        let base = d * (1 + 2 * l);
-        for k in 0..d {
-            let (s, c) = (scale * x[k]).sin_cos();
+    for (k, &xk) in x.iter().enumerate() {
+        let (mut s, mut c) = xk.sin_cos();
+        for l in 0..frequencies {
+            let base = d * (1 + 2 * l);
             out[base + k] = s;
             out[base + d + k] = c;
+            (s, c) = (2.0 * s * c, (c - s) * (c + s));
         }
-        scale *= 2.0;
     }
 }
 
@@ -75,6 +80,34 @@ mod tests {
         assert_eq!(&out[..3], &x);
         assert!((out[3] - 0.5f32.sin()).abs() < 1e-7 && (out[6] - 0.5f32.cos()).abs() < 1e-7);
         assert!((out[9 + 2] - 4.0f32.sin()).abs() < 1e-6 && (out[12 + 2] - 4.0f32.cos()).abs() < 1e-6);
+    }
+
+    /// The double-angle recurrence stays within the float32 phase uncertainty of direct
+    /// evaluation, up to NeRF's 10 octaves, over the range the fields feed in.
+    #[test]
+    fn positional_encoding_recurrence_matches_direct_evaluation() {
+        let frequencies = 10;
+        let mut out = vec![0.0; positional_encoding_dim(3, frequencies)];
+        let mut worst = vec![0.0f64; frequencies];
+        for i in 0..2000 {
+            let t = i as f32 / 2000.0;
+            let x = [(t - 0.5) * 2.0 * std::f32::consts::PI, (37.0 * t).sin() * 3.0, t * t - 0.3];
+            positional_encoding(&x, frequencies, &mut out);
+            for (l, worst) in worst.iter_mut().enumerate() {
+                for (k, &xk) in x.iter().enumerate() {
+                    let phase = f64::from(xk) * f64::from(1u32 << l);
+                    let base = 3 * (1 + 2 * l);
+                    let err_s = (f64::from(out[base + k]) - phase.sin()).abs();
+                    let err_c = (f64::from(out[base + 3 + k]) - phase.cos()).abs();
+                    *worst = worst.max(err_s).max(err_c);
+                }
+            }
+        }
+        for (l, &w) in worst.iter().enumerate() {
+            // ~1 ulp at the first octave, doubling with every octave after it.
+            let bound = 2e-7 * f64::from(1u32 << l).max(1.0) * 2.0;
+            assert!(w <= bound, "octave {l}: max error {w:e} > {bound:e}");
+        }
     }
 
     #[test]

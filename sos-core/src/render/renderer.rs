@@ -10,6 +10,7 @@
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
+use crate::camera::Vec3;
 use crate::plugin::field::Hierarchical;
 use crate::plugin::{FieldTape, RadianceField};
 use crate::render::composite::{self, RayColor, RayGrad, RaySamples};
@@ -425,31 +426,64 @@ impl Rendered {
     }
 }
 
+/// Per-sample channels composited alongside the colour at inference (the segmentation logits).
+pub struct ExtraChannels<'a> {
+    /// Channels per sample.
+    pub dim: usize,
+    /// Only samples whose compositing weight exceeds this are evaluated and composited; stage 2
+    /// trains the head on exactly those, and it skips the many near-empty samples of a ray.
+    pub min_weight: f32,
+    /// `[n, dim]` values at the given sample positions.
+    pub eval: &'a dyn Fn(&[Vec3]) -> Vec<f32>,
+}
+
 /// Renders many rays in chunks without gradients (evaluation and `sos render`); returns the
-/// per-ray colours and the per-ray composited extra channels produced by `extra_fn` from the
-/// surviving samples' positions.
+/// per-ray colours and, with `extra`, its per-ray composited channels (`[n_rays, dim]`).
 pub fn render_inference(
     field: &dyn RadianceField,
     ctx: RenderContext,
     rays: &RayBatch,
     options: RenderOptions,
     chunk: usize,
-    d_extra: usize,
-    extra_fn: &dyn Fn(&Samples) -> Vec<f32>,
+    extra: Option<&ExtraChannels>,
 ) -> (Vec<RayColor>, Vec<f32>) {
     let mut colors = Vec::with_capacity(rays.len());
-    let mut extras = Vec::with_capacity(rays.len() * d_extra);
+    let mut extras = Vec::with_capacity(rays.len() * extra.map_or(0, |e| e.dim));
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     let mut start = 0;
     while start < rays.len() {
         let end = (start + chunk).min(rays.len());
         let mut r = render(field, ctx, &rays.slice(start, end), options, false, &mut rng);
-        let extra = if d_extra > 0 { extra_fn(&r.samples) } else { Vec::new() };
-        extras.extend(r.composite(&extra, d_extra));
+        r.composite(&[], 0);
+        if let Some(extra) = extra {
+            extras.extend(r.composite_extra(extra));
+        }
         colors.extend(r.colors);
         start = end;
     }
     (colors, extras)
+}
+
+impl Rendered {
+    /// `Σ_k w_k e_k` per ray over the samples with `w_k > extra.min_weight`, after
+    /// [`Rendered::composite`] has computed the weights.
+    fn composite_extra(&self, extra: &ExtraChannels) -> Vec<f32> {
+        let d = extra.dim;
+        let selected = |k: usize| self.weights[k] > extra.min_weight;
+        let positions: Vec<Vec3> =
+            (0..self.samples.len()).filter(|&k| selected(k)).map(|k| self.samples.positions[k]).collect();
+        let values = (extra.eval)(&positions);
+        assert_eq!(values.len(), positions.len() * d, "extra channels: eval returned the wrong size");
+        let mut out = vec![0.0; self.samples.n_rays() * d];
+        let mut next = values.chunks_exact(d);
+        for (r, out) in out.chunks_exact_mut(d).enumerate() {
+            for k in self.samples.range(r).filter(|&k| selected(k)) {
+                let v = next.next().expect("one value row per selected sample");
+                out.iter_mut().zip(v).for_each(|(o, e)| *o += self.weights[k] * e);
+            }
+        }
+        out
+    }
 }
 
 #[cfg(test)]

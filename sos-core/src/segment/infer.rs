@@ -26,10 +26,11 @@ use crate::kmeans::{kmeans, KMeansConfig, KMeansResult};
 use crate::plugin::FeatureExtractor;
 use crate::render::composite::EMPTY_RAY_DEPTH;
 use crate::render::rays::RayBatch;
-use crate::render::renderer::render_inference;
+use crate::render::renderer::{render_inference, ExtraChannels};
 use crate::scene::Scene;
-use crate::segment::cleanup::keep_seeded_regions;
+use crate::segment::cleanup::{keep_seeded_regions, DepthContinuity};
 use crate::segment::head::SegHead;
+use crate::segment::head_pass;
 use crate::train::session::Session;
 
 /// Largest angle (degrees) between a training camera's axis and the mean axis for which the
@@ -62,23 +63,20 @@ pub struct RenderedLogits {
 /// Renders the colour, depth and segmentation logits of a whole view.
 pub fn render_logits(session: &Session, head: &SegHead, camera: &Camera) -> RenderedLogits {
     let field = session.field.as_ref();
-    let dim = field.seg_input_dim();
     let d = head.outputs();
     let rays = RayBatch::full_image(camera);
-    let extra_fn = |samples: &crate::render::sampler::Samples| {
-        let n = samples.len();
-        let mut input = vec![0.0; n * dim];
-        field.seg_input(&samples.positions, &mut input);
-        head.infer(&input, n)
-    };
+    let eval = |positions: &[Vec3]| head_pass::sample_logits(field, head, positions);
+    // The head sees the samples stage 2 trained it on: those above the segment weight threshold
+    // (the head was never evaluated below it). That is also a few samples per ray instead of
+    // every candidate; the colour still composites every sample.
+    let extra = ExtraChannels { dim: d, min_weight: session.config.segment.weight_threshold, eval: &eval };
     let (colors, logits) = render_inference(
         field,
         session.render_context(),
         &rays,
         session.render_options(false),
         session.config.render.chunk,
-        d,
-        &extra_fn,
+        Some(&extra),
     );
     let mut rgb = RgbImage::new(camera.width as usize, camera.height as usize);
     let mut depth = Vec::with_capacity(colors.len());
@@ -297,10 +295,11 @@ impl ViewMask {
         ViewMask { labels, clusters, foreground_cluster, foreground, rgb }
     }
 
-    /// Keeps the foreground regions holding a seed pixel ([`keep_seeded_regions`]); the
-    /// labels become the two regions (foreground 1, background 0).
-    pub fn keep_regions_of(self, seeds: &[usize]) -> ViewMask {
-        let foreground = keep_seeded_regions(&self.foreground, self.rgb.width, self.rgb.height, seeds);
+    /// Keeps the foreground regions holding a seed pixel ([`keep_seeded_regions`]), cut
+    /// where `depth` jumps when given; the labels become the two regions (foreground 1,
+    /// background 0).
+    pub fn keep_regions_of(self, seeds: &[usize], depth: Option<DepthContinuity>) -> ViewMask {
+        let foreground = keep_seeded_regions(&self.foreground, self.rgb.width, self.rgb.height, seeds, depth);
         let labels = foreground.iter().map(|&f| u32::from(f)).collect();
         ViewMask { labels, clusters: 2, foreground_cluster: 1, foreground, rgb: self.rgb }
     }
@@ -390,7 +389,10 @@ impl<'a> MaskInference<'a> {
         let mask = ViewMask::new(km.labels, km.k, fg, r.rgb);
         Ok(match masks.keep {
             KeepRegions::All => mask,
-            KeepRegions::Connected => mask.keep_regions_of(&voters),
+            KeepRegions::Connected => {
+                let max_jump = masks.max_depth_jump;
+                mask.keep_regions_of(&voters, (max_jump > 0.0).then_some(DepthContinuity { depth: &r.depth, max_jump }))
+            }
         })
     }
 
@@ -503,7 +505,7 @@ mod tests {
         // Saliency is higher on the square.
         let saliency: Vec<f32> = (0..w * h).map(|i| if inside(i) { 0.7 } else { 0.2 }).collect();
         for (softmax, normalize) in [(false, false), (true, false), (false, true)] {
-            let masks = MaskConfig { clusters: 2, restarts: 3, softmax, normalize, foreground: ForegroundRule::Saliency, keep: KeepRegions::All };
+            let masks = MaskConfig { clusters: 2, restarts: 3, softmax, normalize, foreground: ForegroundRule::Saliency, keep: KeepRegions::All, ..MaskConfig::default() };
             let km = cluster_logits(&logits, 2, &masks, 0).unwrap();
             assert_eq!(km.k, 2);
             let fg = foreground_by_saliency(&km.labels, km.k, &saliency);

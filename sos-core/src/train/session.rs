@@ -198,8 +198,7 @@ impl Session {
             &rays,
             self.render_options(false),
             self.config.render.chunk,
-            0,
-            &|_| Vec::new(),
+            None,
         );
         let mut img = RgbImage::new(camera.width as usize, camera.height as usize);
         for (i, c) in colors.iter().enumerate() {
