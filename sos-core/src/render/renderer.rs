@@ -561,6 +561,38 @@ mod tests {
         (r.colors, field.evaluated.load(Ordering::Relaxed))
     }
 
+    /// Extra channels composite `Σ w_k e_k` over the samples above their weight threshold only,
+    /// and leave the colours as they are.
+    #[test]
+    fn extra_channels_composite_the_selected_samples() {
+        let field = Ball { evaluated: AtomicUsize::new(0), hierarchical: None };
+        let (extent, contraction, rays) = setup();
+        let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
+        let options = RenderOptions { march: MarchOptions { steps: 128, stratified: false }, early_stop: 0.0, min_weight: 0.0 };
+        // Channel 0 is 1 everywhere (so it composites to the selected weight), channel 1 is z.
+        let eval = |p: &[Vec3]| p.iter().flat_map(|p| [1.0, p[2]]).collect::<Vec<f32>>();
+        let all = ExtraChannels { dim: 2, min_weight: 0.0, eval: &eval };
+        let (colors, extra) = render_inference(&field, ctx, &rays, options, 100, Some(&all));
+        let (plain, none) = render_inference(&field, ctx, &rays, options, 100, None);
+        assert!(none.is_empty());
+        for ((c, p), e) in colors.iter().zip(&plain).zip(extra.chunks_exact(2)) {
+            assert_eq!(c.rgb, p.rgb);
+            assert!((e[0] - c.acc).abs() < 1e-5, "{} vs acc {}", e[0], c.acc);
+        }
+        // A threshold drops the low-weight samples: less weight, never more.
+        let strict = ExtraChannels { dim: 2, min_weight: 0.05, eval: &eval };
+        let (_, thresholded) = render_inference(&field, ctx, &rays, options, 100, Some(&strict));
+        let (mut dropped, mut hits) = (0.0f32, 0);
+        for ((c, a), b) in colors.iter().zip(extra.chunks_exact(2)).zip(thresholded.chunks_exact(2)) {
+            assert!(b[0] <= a[0] + 1e-6);
+            if c.acc > 0.5 {
+                hits += 1;
+                dropped += a[0] - b[0];
+            }
+        }
+        assert!(hits > 20 && dropped > 0.0, "{hits} hits, {dropped} weight dropped");
+    }
+
     #[test]
     fn early_termination_skips_density_work_and_keeps_colours() {
         let field = Ball { evaluated: AtomicUsize::new(0), hierarchical: None };
