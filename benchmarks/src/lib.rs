@@ -1,9 +1,14 @@
 //! Shared helpers for the benchmark binaries.
 
-/// The same allocator as the `sos` binary, so benchmarks time what users run (each timing
-/// binary also calls `sos_core::train::memory::keep_freed_memory` first, as `sos` does).
+/// The same allocator as the `sos` binary, so benchmarks time what users run.
 #[global_allocator]
 static ALLOCATOR: sos_core::train::memory::MiMalloc = sos_core::train::memory::MiMalloc;
+
+/// Tunes the allocator as `sos` does (call first in a timing binary's `main`; calling it also
+/// links this crate, and with it the allocator above).
+pub fn allocate_like_sos() {
+    sos_core::train::memory::keep_freed_memory();
+}
 
 /// CPU seconds (user + system, all threads) this process has used so far, from
 /// `/proc/self/stat` (Linux; `None` elsewhere). Unlike wall-clock time it does not count

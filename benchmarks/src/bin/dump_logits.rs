@@ -6,8 +6,6 @@
 //!
 //! `cargo run --release -p sos-benchmarks --bin dump_logits -- CONFIG CHECKPOINT OUT_DIR`
 
-// Links the shared helpers, which install the same allocator as `sos`.
-use sos_benchmarks as _;
 use std::io::Write;
 use std::path::PathBuf;
 
@@ -17,7 +15,7 @@ use sos_core::train::Session;
 use sos_plugins as _;
 
 fn main() {
-    sos_core::train::memory::keep_freed_memory();
+    sos_benchmarks::allocate_like_sos();
     let args: Vec<String> = std::env::args().skip(1).collect();
     let [config, checkpoint, out] = &args[..] else {
         eprintln!("usage: dump_logits CONFIG CHECKPOINT OUT_DIR");

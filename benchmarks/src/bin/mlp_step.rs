@@ -13,8 +13,6 @@ use gemm::Parallelism;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use sos_core::nn::{Activation, Adam, Mlp};
-// Links the shared helpers, which install the same allocator as `sos`.
-use sos_benchmarks as _;
 
 const DIMS: [usize; 6] = [63, 256, 256, 256, 256, 4];
 const BATCH: usize = 16384;
@@ -70,7 +68,7 @@ fn bare_gemm(
 }
 
 fn main() {
-    sos_core::train::memory::keep_freed_memory();
+    sos_benchmarks::allocate_like_sos();
     let threads = std::env::var("RAYON_NUM_THREADS")
         .ok()
         .and_then(|s| s.parse().ok())

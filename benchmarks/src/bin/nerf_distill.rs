@@ -13,8 +13,6 @@
 //! where the voxel checkpoint comes from the 160x120 object-centric synthetic scene (seed 0,
 //! 40 views), as in `configs/nerf_synthetic_small.toml`.
 
-// Links the shared helpers, which install the same allocator as `sos`.
-use sos_benchmarks as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -50,7 +48,7 @@ fn session(field: &str, extra: &str, out: &Path) -> Session {
 }
 
 fn main() {
-    sos_core::train::memory::keep_freed_memory();
+    sos_benchmarks::allocate_like_sos();
     let args: Vec<String> = std::env::args().collect();
     let (Some(teacher_ckpt), Some(out)) = (args.get(1), args.get(2)) else {
         eprintln!("usage: nerf_distill <voxel-grid checkpoint> <output dir> [steps]");

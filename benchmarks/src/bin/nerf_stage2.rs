@@ -27,8 +27,6 @@
 //! Wall time depends on what else runs on the machine; each line also gives the process's CPU
 //! seconds per step and the load average.
 
-// Links the shared helpers, which install the same allocator as `sos`.
-use sos_benchmarks as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -304,7 +302,7 @@ fn head_phase(checkpoint: &Path, repeats: usize) {
         options.min_weight = mode.weight_threshold;
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
         let mut r = render(session.field.as_ref(), session.render_context(), &rays, options, false, &mut rng);
-        r.composite(&[], 0);
+        r.composite();
         let n = r.samples.len();
         let dim = session.field.seg_input_dim();
         let mut head = SegHead::new(&HeadConfig::default(), dim, 1e-3, 0);
@@ -351,7 +349,7 @@ fn density_stats(checkpoint: &Path) {
 }
 
 fn main() {
-    sos_core::train::memory::keep_freed_memory();
+    sos_benchmarks::allocate_like_sos();
     let args: Vec<String> = std::env::args().collect();
     let what = args.get(1).map(String::as_str).unwrap_or("speed");
     let checkpoint =

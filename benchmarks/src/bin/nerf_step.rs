@@ -13,8 +13,6 @@
 //! `cargo run --release -p sos-benchmarks --bin nerf_step [repeats]`; threads: `RAYON_NUM_THREADS`
 //! (default 2).
 
-// Links the shared helpers, which install the same allocator as `sos`.
-use sos_benchmarks as _;
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -284,7 +282,7 @@ fn blocked(mlp: &NerfMlp, rows: usize) -> Vec<Gemm> {
 }
 
 fn main() {
-    sos_core::train::memory::keep_freed_memory();
+    sos_benchmarks::allocate_like_sos();
     let repeats: usize = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(3);
     let threads = std::env::var("RAYON_NUM_THREADS").ok().and_then(|s| s.parse().ok()).unwrap_or(2);
     rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().expect("rayon pool");
@@ -322,7 +320,7 @@ fn main() {
         }
         let options = session.render_options(true);
         let mut r = render(session.field.as_ref(), session.render_context(), &rays, options, true, &mut rng);
-        r.composite(&[], 0);
+        r.composite();
         let mut coarse = r.coarse.take().expect("hierarchical pass");
         let scale = 2.0 / (n_rays * 3) as f32;
         let grads = |colors: &[RayColor], mse: &mut f64| -> Vec<RayGrad<'static>> {

@@ -3,8 +3,6 @@
 //!
 //! `cargo run --release -p sos-benchmarks --bin render_speed [stage-1 steps]`
 
-// Links the shared helpers, which install the same allocator as `sos`.
-use sos_benchmarks as _;
 use std::path::Path;
 use std::time::Instant;
 
@@ -30,7 +28,7 @@ steps = 0
 "#;
 
 fn main() {
-    sos_core::train::memory::keep_freed_memory();
+    sos_benchmarks::allocate_like_sos();
     let steps: usize = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(800);
     let mut config = RunConfig::parse(CONFIG, Path::new("render_speed.toml")).expect("built-in config parses");
     config.train.steps = steps;

@@ -37,7 +37,7 @@ fn flops_per_image(s: &VitShape, size: usize) -> f64 {
 }
 
 fn main() {
-    sos_core::train::memory::keep_freed_memory();
+    sos_benchmarks::allocate_like_sos();
     let threads: usize = std::env::var("RAYON_NUM_THREADS").ok().and_then(|s| s.parse().ok()).unwrap_or(2);
     rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().expect("rayon pool");
     let shape = VitShape::dino(384, 16, 12, 6);

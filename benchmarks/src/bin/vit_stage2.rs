@@ -226,7 +226,7 @@ fn option(args: &[String], flag: &str) -> Option<usize> {
 }
 
 fn main() {
-    sos_core::train::memory::keep_freed_memory();
+    sos_benchmarks::allocate_like_sos();
     let threads: usize = std::env::var("RAYON_NUM_THREADS").ok().and_then(|s| s.parse().ok()).unwrap_or(2);
     rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().expect("rayon pool");
     let args: Vec<String> = std::env::args().skip(1).collect();

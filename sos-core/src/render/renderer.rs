@@ -209,7 +209,7 @@ fn propose(
             n_candidates: n,
             coarse: None,
         };
-        r.composite(&[], 0);
+        r.composite();
         let w = r.weights.clone();
         rendered = Some(Box::new(r));
         w
@@ -377,24 +377,39 @@ impl Rendered {
         }
     }
 
-    /// Composites every ray; `extra` holds `d_extra` channels per surviving sample (may be
-    /// empty with `d_extra = 0`). Returns the composited extra channels, `[n_rays * d_extra]`.
-    pub fn composite(&mut self, extra: &[f32], d_extra: usize) -> Vec<f32> {
+    /// Composites every ray: fills the per-sample weights and the per-ray colours. Extra
+    /// channels are composited afterwards from these weights ([`Rendered::composite_extra`]),
+    /// or by the caller.
+    pub fn composite(&mut self) {
         let n_rays = self.samples.n_rays();
         let mut weights = vec![0.0; self.samples.len()];
         let mut colors = vec![RayColor::default(); n_rays];
-        let mut extra_out = vec![0.0; n_rays * d_extra];
         for (r, color) in colors.iter_mut().enumerate() {
-            let s = self.ray_samples(r, extra, d_extra);
-            *color = composite::composite(
-                &s,
-                &mut weights[self.samples.range(r)],
-                &mut extra_out[r * d_extra..(r + 1) * d_extra],
-            );
+            let s = self.ray_samples(r, &[], 0);
+            *color = composite::composite(&s, &mut weights[self.samples.range(r)], &mut []);
         }
         self.weights = weights;
         self.colors = colors;
-        extra_out
+    }
+
+    /// `Σ_k w_k e_k` per ray over the samples with `w_k > extra.min_weight`, after
+    /// [`Rendered::composite`] has computed the weights.
+    fn composite_extra(&self, extra: &ExtraChannels) -> Vec<f32> {
+        let d = extra.dim;
+        let selected = |k: usize| self.weights[k] > extra.min_weight;
+        let positions: Vec<Vec3> =
+            (0..self.samples.len()).filter(|&k| selected(k)).map(|k| self.samples.positions[k]).collect();
+        let values = (extra.eval)(&positions);
+        assert_eq!(values.len(), positions.len() * d, "extra channels: eval returned the wrong size");
+        let mut out = vec![0.0; self.samples.n_rays() * d];
+        let mut next = values.chunks_exact(d);
+        for (r, out) in out.chunks_exact_mut(d).enumerate() {
+            for k in self.samples.range(r).filter(|&k| selected(k)) {
+                let v = next.next().expect("one value row per selected sample");
+                out.iter_mut().zip(v).for_each(|(o, e)| *o += self.weights[k] * e);
+            }
+        }
+        out
     }
 
     /// Backward of [`Rendered::composite`]: given per-ray output gradients, returns
@@ -454,7 +469,7 @@ pub fn render_inference(
     while start < rays.len() {
         let end = (start + chunk).min(rays.len());
         let mut r = render(field, ctx, &rays.slice(start, end), options, false, &mut rng);
-        r.composite(&[], 0);
+        r.composite();
         if let Some(extra) = extra {
             extras.extend(r.composite_extra(extra));
         }
@@ -462,28 +477,6 @@ pub fn render_inference(
         start = end;
     }
     (colors, extras)
-}
-
-impl Rendered {
-    /// `Σ_k w_k e_k` per ray over the samples with `w_k > extra.min_weight`, after
-    /// [`Rendered::composite`] has computed the weights.
-    fn composite_extra(&self, extra: &ExtraChannels) -> Vec<f32> {
-        let d = extra.dim;
-        let selected = |k: usize| self.weights[k] > extra.min_weight;
-        let positions: Vec<Vec3> =
-            (0..self.samples.len()).filter(|&k| selected(k)).map(|k| self.samples.positions[k]).collect();
-        let values = (extra.eval)(&positions);
-        assert_eq!(values.len(), positions.len() * d, "extra channels: eval returned the wrong size");
-        let mut out = vec![0.0; self.samples.n_rays() * d];
-        let mut next = values.chunks_exact(d);
-        for (r, out) in out.chunks_exact_mut(d).enumerate() {
-            for k in self.samples.range(r).filter(|&k| selected(k)) {
-                let v = next.next().expect("one value row per selected sample");
-                out.iter_mut().zip(v).for_each(|(o, e)| *o += self.weights[k] * e);
-            }
-        }
-        out
-    }
 }
 
 #[cfg(test)]
@@ -557,7 +550,7 @@ mod tests {
         field.evaluated.store(0, Ordering::Relaxed);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
         let mut r = render(field, ctx, &rays, options, false, &mut rng);
-        r.composite(&[], 0);
+        r.composite();
         (r.colors, field.evaluated.load(Ordering::Relaxed))
     }
 

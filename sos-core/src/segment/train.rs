@@ -300,7 +300,7 @@ fn render_rays(session: &Session, rays: &RayBatch, joint: bool, rng: &mut impl R
         options.min_weight = session.config.segment.weight_threshold;
     }
     let mut r = render(session.field.as_ref(), session.render_context(), rays, options, joint, rng);
-    r.composite(&[], 0);
+    r.composite();
     r
 }
 

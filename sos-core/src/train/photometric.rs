@@ -118,7 +118,7 @@ pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<S
         }
         let options = session.render_options(true);
         let mut r = render(session.field.as_ref(), session.render_context(), &rays, options, true, &mut rng);
-        r.composite(&[], 0);
+        r.composite();
         let mut coarse = r.coarse.take();
 
         let scale = 2.0 / (n_rays * 3) as f32;
