@@ -22,13 +22,12 @@ use std::path::{Path, PathBuf};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sos_core::camera::Vec3;
-use sos_core::plugin::dataset::{DatasetConfig, DatasetError};
-use sos_core::registry::Registration;
-use sos_core::scene::{Scene, SceneExtent, View};
+use sos_core::plugin::dataset::DatasetError;
+use sos_core::scene::{Scene, View};
 
-use crate::image_files::{find_with_stem, list_images, stem};
+use crate::adapter::{hold_out_views, orbit_scene, register_dataset};
+use crate::image_files::{check_images_for, find_with_stem, list_images, stem};
 use crate::pose::{self, Pose};
-use crate::synthetic::hold_out_split;
 use crate::tanks_temples::parse_c2w_opencv;
 use crate::text::{invalid, number, read_text};
 use crate::views::{check_aabb, checked_camera, extent_of, optional_mask, scene_name, Intrinsics};
@@ -74,24 +73,12 @@ impl Default for BlendedMvsConfig {
     }
 }
 
-#[typetag::serde(name = "blendedmvs")]
-impl DatasetConfig for BlendedMvsConfig {
-    fn open(&self, config_dir: &Path) -> Result<Scene, DatasetError> {
-        load_blendedmvs(self, &config_dir.join(&self.path))
-    }
-}
-
-fn default_config() -> Box<dyn DatasetConfig> {
-    Box::new(BlendedMvsConfig::default())
-}
-
-inventory::submit! {
-    Registration::<dyn DatasetConfig>::new(
-        "blendedmvs",
-        "BlendedMVS, original (blended_images/ + cams/) or NSVF (rgb/ + pose/ + bbox.txt) layout",
-        default_config,
-    )
-}
+register_dataset!(
+    BlendedMvsConfig,
+    "blendedmvs",
+    "BlendedMVS, original (blended_images/ + cams/) or NSVF (rgb/ + pose/ + bbox.txt) layout",
+    load_blendedmvs
+);
 
 /// A parsed `<id>_cam.txt`.
 #[derive(Debug, Clone, PartialEq)]
@@ -302,42 +289,10 @@ fn load_original(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetEr
         .collect::<Result<_, DatasetError>>()?;
     let min_depth = loaded.iter().map(|l| l.1).fold(f64::INFINITY, f64::min);
     let views: Vec<View> = loaded.into_iter().map(|l| l.0).collect();
-    let (train, test) = hold_out_split(views.len(), cfg.hold_out_every);
-    if train.is_empty() {
-        return Err(invalid(
-            root,
-            "no training views left; raise `hold_out_every` or set it to 0",
-        ));
-    }
+    let (train, test) = hold_out_views(root, views.len(), cfg.hold_out_every)?;
     let extent = extent_of(&views, &train, cfg.aabb);
-    finish(
-        root,
-        views,
-        train,
-        test,
-        extent,
-        cfg.near.unwrap_or((0.9 * min_depth) as f32),
-    )
-}
-
-fn finish(
-    root: &Path,
-    views: Vec<View>,
-    train: Vec<usize>,
-    test: Vec<usize>,
-    extent: SceneExtent,
-    near: f32,
-) -> Result<Scene, DatasetError> {
-    let render_path = crate::blender::orbit_path_around(&views, &train, &extent);
-    Ok(Scene {
-        name: scene_name(root, "blendedmvs"),
-        views,
-        train,
-        test,
-        extent,
-        near,
-        render_path,
-    })
+    let near = cfg.near.unwrap_or((0.9 * min_depth) as f32);
+    Ok(orbit_scene(scene_name(root, "blendedmvs"), views, train, test, extent, near))
 }
 
 /// NSVF's `intrinsics.txt`: 4x4 or 3x3 K, or the DeepVoxels-style `f cx cy 0` first line.
@@ -435,19 +390,7 @@ fn load_nsvf(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetError>
     // Train first, then the rest, each in name order.
     images.sort_by_key(|p| split_prefix(stem(p)).map(|(s, _)| s));
     if let Ok(entries) = std::fs::read_dir(&pose_dir) {
-        for e in entries.flatten() {
-            let p = e.path();
-            if p.extension().is_some_and(|x| x == "txt") && find_with_stem(&rgb, stem(&p)).is_none()
-            {
-                return Err(invalid(
-                    &p,
-                    format!(
-                        "no image with this stem in {}; remove the file or add the image",
-                        rgb.display()
-                    ),
-                ));
-            }
-        }
+        check_images_for(entries, &rgb)?;
     }
     let has_test = images
         .iter()
@@ -496,5 +439,6 @@ fn load_nsvf(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetError>
     }
     let views: Vec<View> = views.into_iter().map(|v| v.1).collect();
     let extent = extent_of(&views, &train, bbox);
-    finish(root, views, train, test, extent, cfg.near.unwrap_or(0.0))
+    let near = cfg.near.unwrap_or(0.0);
+    Ok(orbit_scene(scene_name(root, "blendedmvs"), views, train, test, extent, near))
 }

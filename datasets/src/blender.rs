@@ -13,10 +13,10 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sos_core::camera::{add, cross, dot, normalize, sub, Camera, Vec3};
 use sos_core::image::RgbImage;
-use sos_core::plugin::dataset::{DatasetConfig, DatasetError};
-use sos_core::registry::Registration;
+use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, SceneExtent, View};
 
+use crate::adapter::register_dataset;
 use crate::image_files::{find_image, find_with_stem, load_mask, stem};
 
 /// Configuration of the `blender` dataset (`[scene] kind = "blender"`).
@@ -51,24 +51,12 @@ impl Default for BlenderConfig {
     }
 }
 
-#[typetag::serde(name = "blender")]
-impl DatasetConfig for BlenderConfig {
-    fn open(&self, config_dir: &Path) -> Result<Scene, DatasetError> {
-        load_blender(self, &config_dir.join(&self.path))
-    }
-}
-
-fn default_config() -> Box<dyn DatasetConfig> {
-    Box::new(BlenderConfig::default())
-}
-
-inventory::submit! {
-    Registration::<dyn DatasetConfig>::new(
-        "blender",
-        "NeRF-synthetic layout (transforms_{train,test}.json, RGBA on white)",
-        default_config,
-    )
-}
+register_dataset!(
+    BlenderConfig,
+    "blender",
+    "NeRF-synthetic layout (transforms_{train,test}.json, RGBA on white)",
+    load_blender
+);
 
 fn invalid(path: &Path, message: impl Into<String>) -> DatasetError {
     DatasetError::Invalid {

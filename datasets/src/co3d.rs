@@ -24,12 +24,11 @@ use std::path::{Path, PathBuf};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sos_core::camera::Vec3;
-use sos_core::plugin::dataset::{DatasetConfig, DatasetError};
-use sos_core::registry::Registration;
+use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, View};
 
+use crate::adapter::{hold_out_views, orbit_scene, register_dataset};
 use crate::pose::{self, Pose, M3, V3};
-use crate::synthetic::hold_out_split;
 use crate::text::{invalid, read_bytes};
 use crate::views::{
     check_aabb, checked_camera, extent_of, load_image_sized, optional_mask, Intrinsics,
@@ -64,24 +63,12 @@ impl Default for Co3dConfig {
     }
 }
 
-#[typetag::serde(name = "co3d")]
-impl DatasetConfig for Co3dConfig {
-    fn open(&self, config_dir: &Path) -> Result<Scene, DatasetError> {
-        load_co3d(self, &config_dir.join(&self.path))
-    }
-}
-
-fn default_config() -> Box<dyn DatasetConfig> {
-    Box::new(Co3dConfig::default())
-}
-
-inventory::submit! {
-    Registration::<dyn DatasetConfig>::new(
-        "co3d",
-        "one CO3Dv2 sequence (frame/sequence_annotations.jgz, PyTorch3D NDC cameras, soft masks)",
-        default_config,
-    )
-}
+register_dataset!(
+    Co3dConfig,
+    "co3d",
+    "one CO3Dv2 sequence (frame/sequence_annotations.jgz, PyTorch3D NDC cameras, soft masks)",
+    load_co3d
+);
 
 /// `image` of a frame annotation.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -418,22 +405,7 @@ pub fn load_co3d(cfg: &Co3dConfig, root: &Path) -> Result<Scene, DatasetError> {
             })
         })
         .collect::<Result<_, DatasetError>>()?;
-    let (train, test) = hold_out_split(views.len(), cfg.hold_out_every);
-    if train.is_empty() {
-        return Err(invalid(
-            root,
-            "no training views left; raise `hold_out_every` or set it to 0",
-        ));
-    }
+    let (train, test) = hold_out_views(root, views.len(), cfg.hold_out_every)?;
     let extent = extent_of(&views, &train, cfg.aabb);
-    let render_path = crate::blender::orbit_path_around(&views, &train, &extent);
-    Ok(Scene {
-        name: sequence,
-        views,
-        train,
-        test,
-        extent,
-        near: cfg.near,
-        render_path,
-    })
+    Ok(orbit_scene(sequence, views, train, test, extent, cfg.near))
 }

@@ -29,13 +29,12 @@ use std::path::{Path, PathBuf};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sos_core::camera::Vec3;
-use sos_core::plugin::dataset::{DatasetConfig, DatasetError};
-use sos_core::registry::Registration;
+use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, View};
 
+use crate::adapter::{hold_out_views, orbit_scene, register_dataset};
 use crate::image_files::find_with_stem;
 use crate::pose::{self, Pose};
-use crate::synthetic::hold_out_split;
 use crate::text::{invalid, number, read_bytes, read_text, Reader};
 use crate::views::{check_aabb, checked_camera, extent_of, optional_mask, scene_name, Intrinsics};
 
@@ -74,24 +73,12 @@ impl Default for ColmapConfig {
     }
 }
 
-#[typetag::serde(name = "colmap")]
-impl DatasetConfig for ColmapConfig {
-    fn open(&self, config_dir: &Path) -> Result<Scene, DatasetError> {
-        load_colmap(self, &config_dir.join(&self.path))
-    }
-}
-
-fn default_config() -> Box<dyn DatasetConfig> {
-    Box::new(ColmapConfig::default())
-}
-
-inventory::submit! {
-    Registration::<dyn DatasetConfig>::new(
-        "colmap",
-        "COLMAP sparse model (cameras/images .bin or .txt) with its images/ folder",
-        default_config,
-    )
-}
+register_dataset!(
+    ColmapConfig,
+    "colmap",
+    "COLMAP sparse model (cameras/images .bin or .txt) with its images/ folder",
+    load_colmap
+);
 
 /// COLMAP camera model: name, parameter count, whether the first parameter is a single focal
 /// length, whether it is a fisheye projection.
@@ -593,22 +580,7 @@ pub fn load_colmap(cfg: &ColmapConfig, root: &Path) -> Result<Scene, DatasetErro
             })
         })
         .collect::<Result<_, DatasetError>>()?;
-    let (train, test) = hold_out_split(views.len(), cfg.hold_out_every);
-    if train.is_empty() {
-        return Err(invalid(
-            root,
-            "no training views left; raise `hold_out_every` or set it to 0",
-        ));
-    }
+    let (train, test) = hold_out_views(root, views.len(), cfg.hold_out_every)?;
     let extent = extent_of(&views, &train, cfg.aabb);
-    let render_path = crate::blender::orbit_path_around(&views, &train, &extent);
-    Ok(Scene {
-        name: scene_name(root, "colmap"),
-        views,
-        train,
-        test,
-        extent,
-        near: cfg.near,
-        render_path,
-    })
+    Ok(orbit_scene(scene_name(root, "colmap"), views, train, test, extent, cfg.near))
 }

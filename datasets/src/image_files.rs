@@ -51,6 +51,24 @@ pub fn find_image(dir: &Path, name: &str) -> Option<PathBuf> {
         .find(|p| p.is_file())
 }
 
+/// Checks that every `.txt` file among `entries` (a listing of per-image camera or pose files)
+/// has an image with its stem in `images`, so that no camera is silently dropped.
+pub fn check_images_for(entries: std::fs::ReadDir, images: &Path) -> Result<(), DatasetError> {
+    for e in entries.flatten() {
+        let p = e.path();
+        if p.extension().is_some_and(|x| x == "txt") && find_with_stem(images, stem(&p)).is_none() {
+            return Err(DatasetError::Invalid {
+                path: p,
+                message: format!(
+                    "no image with this stem in {}; remove the file or add the image",
+                    images.display()
+                ),
+            });
+        }
+    }
+    Ok(())
+}
+
 /// File stem as text (empty when the name is not UTF-8).
 pub fn stem(path: &Path) -> &str {
     path.file_stem().and_then(|s| s.to_str()).unwrap_or("")

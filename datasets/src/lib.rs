@@ -9,7 +9,8 @@
 //! - `co3d`: one CO3Dv2 sequence ([`co3d`]);
 //! - `tanks-temples`: Tanks and Temples in NeRF++'s layout ([`tanks_temples`]).
 //!
-//! Supporting modules: [`npy`] (`.npy` reading/writing), [`pose`] (pose algebra, LLFF
+//! Supporting modules: [`adapter`] (registration, hold-out split and scene assembly shared by
+//! the adapters), [`npy`] (`.npy` reading/writing), [`pose`] (pose algebra, LLFF
 //! recentring, spherify and spirals, convention conversions), [`export`] (writing scenes in
 //! every layout), [`layouts`] (write and reopen one scene in each layout), [`text`] (camera
 //! and annotation files), [`views`] (checked cameras, images and masks) and [`image_files`]
@@ -17,6 +18,7 @@
 
 #![warn(missing_docs)]
 
+pub mod adapter;
 pub mod blendedmvs;
 pub mod blender;
 pub mod co3d;

@@ -23,14 +23,13 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sos_core::camera::CameraConvention;
 use sos_core::image::RgbImage;
-use sos_core::plugin::dataset::{DatasetConfig, DatasetError};
-use sos_core::registry::Registration;
+use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, SceneExtent, View};
 
+use crate::adapter::{hold_out_views, register_dataset};
 use crate::image_files::{find_with_stem, list_images, load_mask, stem};
 use crate::npy::read_npy;
 use crate::pose::{self, Pose};
-use crate::synthetic::hold_out_split;
 
 /// Configuration of the `llff` dataset (`[scene] kind = "llff"`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -70,24 +69,12 @@ impl Default for LlffConfig {
     }
 }
 
-#[typetag::serde(name = "llff")]
-impl DatasetConfig for LlffConfig {
-    fn open(&self, config_dir: &Path) -> Result<Scene, DatasetError> {
-        load_llff(self, &config_dir.join(&self.path))
-    }
-}
-
-fn default_config() -> Box<dyn DatasetConfig> {
-    Box::new(LlffConfig::default())
-}
-
-inventory::submit! {
-    Registration::<dyn DatasetConfig>::new(
-        "llff",
-        "forward-facing LLFF captures (poses_bounds.npy + images_N/), as NeRF's load_llff.py",
-        default_config,
-    )
-}
+register_dataset!(
+    LlffConfig,
+    "llff",
+    "forward-facing LLFF captures (poses_bounds.npy + images_N/), as NeRF's load_llff.py",
+    load_llff
+);
 
 fn invalid(path: &Path, message: impl Into<String>) -> DatasetError {
     DatasetError::Invalid {
@@ -376,13 +363,7 @@ pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
         });
     }
     masks.check_any_used(&views)?;
-    let (train, test) = hold_out_split(views.len(), cfg.hold_out_every);
-    if train.is_empty() {
-        return Err(invalid(
-            root,
-            "no training views left; raise `hold_out_every` or set it to 0",
-        ));
-    }
+    let (train, test) = hold_out_views(root, views.len(), cfg.hold_out_every)?;
     let to_cam = |p: &Pose| pose::to_camera(p, width as u32, height as u32, focal);
     let name = root
         .file_name()
@@ -470,6 +451,7 @@ impl MaskDir {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use sos_core::plugin::dataset::DatasetConfig;
     use crate::export::write_llff;
     use crate::synthetic::{generate, Rig, SyntheticConfig};
 

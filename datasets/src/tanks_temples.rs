@@ -19,11 +19,11 @@ use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use sos_core::plugin::dataset::{DatasetConfig, DatasetError};
-use sos_core::registry::Registration;
+use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, SceneExtent, View};
 
-use crate::image_files::{find_with_stem, list_images, stem};
+use crate::adapter::{orbit_scene, register_dataset};
+use crate::image_files::{check_images_for, find_with_stem, list_images, stem};
 use crate::pose::{self, Pose};
 use crate::text::{invalid, matrix4, read_text};
 use crate::views::{checked_camera, optional_mask, scene_name, Intrinsics};
@@ -67,24 +67,12 @@ impl Default for TanksTemplesConfig {
     }
 }
 
-#[typetag::serde(name = "tanks-temples")]
-impl DatasetConfig for TanksTemplesConfig {
-    fn open(&self, config_dir: &Path) -> Result<Scene, DatasetError> {
-        load_tanks_temples(self, &config_dir.join(&self.path))
-    }
-}
-
-fn default_config() -> Box<dyn DatasetConfig> {
-    Box::new(TanksTemplesConfig::default())
-}
-
-inventory::submit! {
-    Registration::<dyn DatasetConfig>::new(
-        "tanks-temples",
-        "Tanks and Temples in the NeRF++ layout (train|test/{rgb,pose,intrinsics}), unbounded",
-        default_config,
-    )
-}
+register_dataset!(
+    TanksTemplesConfig,
+    "tanks-temples",
+    "Tanks and Temples in the NeRF++ layout (train|test/{rgb,pose,intrinsics}), unbounded",
+    load_tanks_temples
+);
 
 /// K of a NeRF++ intrinsics file (4x4, or 3x3 written as 9 numbers).
 pub fn parse_k(path: &Path, text: &str) -> Result<[[f64; 3]; 3], DatasetError> {
@@ -158,19 +146,7 @@ fn split_files(root: &Path, split: &str) -> Result<SplitFiles, DatasetError> {
             path: d.clone(),
             hint: format!("one .txt per image of {split}/rgb, with the image's stem"),
         })?;
-        for e in entries.flatten() {
-            let p = e.path();
-            if p.extension().is_some_and(|x| x == "txt") && find_with_stem(&rgb, stem(&p)).is_none()
-            {
-                return Err(invalid(
-                    &p,
-                    format!(
-                        "no image with this stem in {}; remove the file or add the image",
-                        rgb.display()
-                    ),
-                ));
-            }
-        }
+        check_images_for(entries, &rgb)?;
     }
     Ok(SplitFiles { images, dir })
 }
@@ -296,14 +272,6 @@ pub fn load_tanks_temples(cfg: &TanksTemplesConfig, root: &Path) -> Result<Scene
         }
     };
     let train: Vec<usize> = (0..n_train).collect();
-    let render_path = crate::blender::orbit_path_around(&views, &train, &extent);
-    Ok(Scene {
-        name: scene_name(root, "tanks-temples"),
-        test: (n_train..views.len()).collect(),
-        train,
-        views,
-        extent,
-        near: cfg.near,
-        render_path,
-    })
+    let test: Vec<usize> = (n_train..views.len()).collect();
+    Ok(orbit_scene(scene_name(root, "tanks-temples"), views, train, test, extent, cfg.near))
 }

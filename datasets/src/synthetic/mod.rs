@@ -35,9 +35,11 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use sos_core::camera::Camera;
 use sos_core::plugin::dataset::{DatasetConfig, DatasetError};
-use sos_core::registry::Registration;
 use sos_core::scene::{Scene, SceneExtent, View};
 
+use crate::adapter::register_dataset;
+// Public here too, where the split was first defined.
+pub use crate::adapter::hold_out_split;
 use crate::pose::{self, Pose};
 pub use world::{OBJECT_CENTRE, OBJECT_RADIUS, ROOM_MAX, ROOM_MIN};
 
@@ -120,26 +122,11 @@ impl DatasetConfig for SyntheticConfig {
     }
 }
 
-fn default_config() -> Box<dyn DatasetConfig> {
-    Box::new(SyntheticConfig::default())
-}
-
-inventory::submit! {
-    Registration::<dyn DatasetConfig>::new(
-        "synthetic",
-        "procedural ray-traced scene with one object and exact masks (object-centric, forward-facing or unbounded rig)",
-        default_config,
-    )
-}
-
-/// Splits `n` views: every `hold_out_every`-th view from 0 is a test view (none when 0).
-pub fn hold_out_split(n: usize, hold_out_every: usize) -> (Vec<usize>, Vec<usize>) {
-    let is_test = |i: usize| hold_out_every > 0 && i % hold_out_every == 0;
-    (
-        (0..n).filter(|&i| !is_test(i)).collect(),
-        (0..n).filter(|&i| is_test(i)).collect(),
-    )
-}
+register_dataset!(
+    SyntheticConfig,
+    "synthetic",
+    "procedural ray-traced scene with one object and exact masks (object-centric, forward-facing or unbounded rig)"
+);
 
 /// Generates the scene described by `cfg`.
 ///

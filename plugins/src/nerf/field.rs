@@ -1,15 +1,16 @@
 //! The runtime of the `nerf` field: a fine network and, for hierarchical sampling, a separate
-//! coarse (proposal) network, each a [`NerfMlp`] with its own Adam state.
+//! coarse (proposal) network, each a [`NerfMlp`] with its own Adam state, paired by
+//! [`CoarseFine`].
 
 use std::any::Any;
 
 use rand::SeedableRng;
 use sos_core::camera::Vec3;
 use sos_core::nn::{Adam, Param};
-use sos_core::plugin::field::Hierarchical;
 use sos_core::plugin::{FieldTape, RadianceField};
 use sos_core::render::contraction::Contraction;
 
+use super::coarse_fine::{CoarseFine, Level};
 use super::network::{DensityActivation, NerfMlp, NerfShape, NerfTape};
 use super::NerfConfig;
 
@@ -183,123 +184,32 @@ pub fn read_params(bytes: &[u8], nets: &mut [&mut NerfMlp]) -> Result<(), String
     Ok(())
 }
 
-/// The `nerf` field (see the module docs of [`super`]).
-pub struct NerfField {
-    config: NerfConfig,
-    fine: NerfNet,
-    coarse: NerfNet,
-}
+/// The `nerf` field (see the module docs of [`super`]): a fine and a coarse [`NerfNet`].
+pub type NerfField = CoarseFine<NerfNet>;
 
-impl NerfField {
-    /// Builds both networks (the coarse one is kept even with `hierarchical = false`, so that
-    /// checkpoints load either way and the switch is a pure ablation).
+impl CoarseFine<NerfNet> {
+    /// Builds both networks.
     pub fn new(config: NerfConfig, contraction: Contraction, seed: u64) -> Self {
         let shape = config.shape();
         let act = config.density_activation;
-        NerfField {
-            fine: NerfNet::new(shape, act, config.lr, contraction, seed ^ 0xF1),
-            coarse: NerfNet::new(shape, act, config.lr, contraction, seed ^ 0xC0),
-            config,
-        }
-    }
-
-    /// The fine network.
-    pub fn fine(&self) -> &NerfNet {
-        &self.fine
-    }
-
-    /// Both networks, fine first.
-    pub fn networks_mut(&mut self) -> [&mut NerfNet; 2] {
-        [&mut self.fine, &mut self.coarse]
+        CoarseFine::build(seed, config.sampling(), |seed| NerfNet::new(shape, act, config.lr, contraction, seed))
     }
 }
 
-impl RadianceField for NerfField {
-    fn density(&self, positions: &[Vec3], density: &mut [f32]) {
-        self.fine.density(positions, density);
+impl Level for NerfNet {
+    fn mlps(&self) -> Vec<&NerfMlp> {
+        vec![&self.mlp]
     }
 
-    fn forward(
-        &self,
-        positions: &[Vec3],
-        directions: &[Vec3],
-        density: &mut [f32],
-        rgb: &mut [[f32; 3]],
-        record: bool,
-    ) -> FieldTape {
-        self.fine.forward(positions, directions, density, rgb, record)
-    }
-
-    fn backward(
-        &mut self,
-        positions: &[Vec3],
-        directions: &[Vec3],
-        tape: FieldTape,
-        grad_density: &[f32],
-        grad_rgb: &[[f32; 3]],
-    ) {
-        self.fine.backward(positions, directions, tape, grad_density, grad_rgb);
-    }
-
-    fn step(&mut self, lr_factor: f32) {
-        self.fine.apply_gradients(lr_factor);
-        if self.config.hierarchical {
-            self.coarse.apply_gradients(lr_factor);
-        }
-    }
-
-    fn gradients_finite(&self) -> bool {
-        self.fine.gradients_finite() && self.coarse.gradients_finite()
-    }
-
-    fn discard_gradients(&mut self) {
-        self.fine.discard_gradients();
-        self.coarse.discard_gradients();
-    }
-
-    fn hierarchical(&self) -> Option<Hierarchical> {
-        self.config.hierarchical.then_some(Hierarchical {
-            coarse_samples: self.config.coarse_samples,
-            fine_samples: self.config.fine_samples,
-        })
-    }
-
-    fn coarse(&self) -> Option<&dyn RadianceField> {
-        self.config.hierarchical.then_some(&self.coarse as &dyn RadianceField)
-    }
-
-    fn coarse_mut(&mut self) -> Option<&mut dyn RadianceField> {
-        if self.config.hierarchical {
-            Some(&mut self.coarse)
-        } else {
-            None
-        }
-    }
-
-    fn seg_input_dim(&self) -> usize {
-        self.fine.seg_input_dim()
-    }
-
-    fn seg_input(&self, positions: &[Vec3], out: &mut [f32]) {
-        self.fine.seg_input(positions, out);
-    }
-
-    fn save_state(&self) -> Vec<u8> {
-        write_params(&[&self.fine.mlp, &self.coarse.mlp])
-    }
-
-    fn load_state(&mut self, bytes: &[u8]) -> Result<(), String> {
-        read_params(bytes, &mut [&mut self.fine.mlp, &mut self.coarse.mlp])
-    }
-
-    fn num_parameters(&self) -> usize {
-        self.fine.num_parameters() + if self.config.hierarchical { self.coarse.num_parameters() } else { 0 }
+    fn mlps_mut(&mut self) -> Vec<&mut NerfMlp> {
+        vec![&mut self.mlp]
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use sos_core::plugin::field::Hierarchical;
     use sos_core::scene::SceneExtent;
 
     fn tiny_config() -> NerfConfig {
@@ -327,7 +237,7 @@ mod tests {
         b.load_state(&bytes).unwrap();
         assert_eq!(eval(&a), eval(&b));
         assert_eq!(b.save_state(), bytes);
-        assert_eq!(a.coarse.mlp, b.coarse.mlp);
+        assert_eq!(a.networks()[1].mlp, b.networks()[1].mlp);
         assert!(b.load_state(&bytes[..bytes.len() - 4]).is_err());
         let extent = SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] };
         let mut wide = NerfField::new(NerfConfig { width: 9, ..tiny_config() }, Contraction::new(&extent), 0);
@@ -354,7 +264,8 @@ mod tests {
         assert_eq!(f.hierarchical(), Some(Hierarchical { coarse_samples: 64, fine_samples: 128 }));
         assert!(f.coarse().is_some() && f.coarse_mut().is_some());
         let n_both = f.num_parameters();
-        f.config.hierarchical = false;
+        let extent = SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] };
+        let f = NerfField::new(NerfConfig { hierarchical: false, ..tiny_config() }, Contraction::new(&extent), 0);
         assert!(f.hierarchical().is_none() && f.coarse().is_none());
         assert_eq!(2 * f.num_parameters(), n_both);
     }

@@ -15,16 +15,21 @@
 //! termination and stage-2 weight thresholding are the core's `train.occupancy`,
 //! `train.early_stop` and `segment.weight_threshold`.
 
+mod coarse_fine;
 mod field;
+pub(crate) mod limits;
 pub mod network;
 
 use serde::{Deserialize, Serialize};
 use sos_core::error::BuildError;
+use sos_core::plugin::field::Hierarchical;
 use sos_core::plugin::{RadianceField, RadianceFieldConfig};
 use sos_core::registry::Registration;
 use sos_core::render::contraction::Contraction;
 use sos_core::scene::SceneExtent;
 
+use limits::Limits;
+pub use coarse_fine::{CoarseFine, Level};
 pub use field::{normalised_coords, read_params, write_params, NerfField, NerfNet};
 pub use network::{DensityActivation, NerfMlp, NerfShape, NerfTape};
 
@@ -89,39 +94,20 @@ impl NerfConfig {
         }
     }
 
-    fn invalid(key: &str, reason: impl Into<String>) -> BuildError {
-        BuildError::Invalid { kind: "nerf".into(), key: key.into(), reason: reason.into() }
+    /// The proposal pass this config asks for (`None` when not `hierarchical`).
+    pub fn sampling(&self) -> Option<Hierarchical> {
+        self.hierarchical
+            .then_some(Hierarchical { coarse_samples: self.coarse_samples, fine_samples: self.fine_samples })
     }
 
     /// Checks the ranges the types cannot express.
     pub fn validate(&self) -> Result<(), BuildError> {
-        if self.hierarchical && !(2..=1024).contains(&self.coarse_samples) {
-            return Err(Self::invalid("coarse_samples", "must be in 2..=1024"));
-        }
-        if self.hierarchical && self.fine_samples > 4096 {
-            return Err(Self::invalid("fine_samples", "must be at most 4096"));
-        }
-        if self.pos_frequencies > 16 || self.dir_frequencies > 16 {
-            return Err(Self::invalid("pos_frequencies", "`pos_frequencies` and `dir_frequencies` must be at most 16"));
-        }
-        if !(1..=32).contains(&self.depth) {
-            return Err(Self::invalid("depth", "must be in 1..=32"));
-        }
-        if !(1..=4096).contains(&self.width) || !(1..=4096).contains(&self.view_width) {
-            return Err(Self::invalid("width", "`width` and `view_width` must be in 1..=4096"));
-        }
-        if self.skip >= self.depth {
-            return Err(Self::invalid(
-                "skip",
-                format!("must be 0 (no skip) or a trunk layer in 1..{} (depth = {})", self.depth, self.depth),
-            ));
-        }
-        if !(self.lr > 0.0 && self.lr.is_finite()) {
-            return Err(Self::invalid("lr", "must be a positive number"));
-        }
-        Ok(())
+        LIMITS.check(self)
     }
 }
+
+/// The bounds and wording of `nerf`'s checks.
+const LIMITS: Limits = Limits { kind: "nerf", max_coarse_samples: 1024, skip_error_names_depth: true };
 
 #[typetag::serde(name = "nerf")]
 impl RadianceFieldConfig for NerfConfig {
@@ -152,11 +138,7 @@ mod tests {
             (NerfConfig { lr: -1.0, ..Default::default() }, "lr"),
             (NerfConfig { depth: 0, skip: 0, ..Default::default() }, "depth"),
         ] {
-            match cfg.build(&extent, 0) {
-                Err(BuildError::Invalid { key: k, .. }) => assert_eq!(k, key),
-                Err(e) => panic!("unexpected error {e}"),
-                Ok(_) => panic!("{key} should be rejected"),
-            }
+            limits::assert_rejects(&cfg, &extent, key);
         }
         assert!(NerfConfig::default().build(&extent, 0).is_ok());
     }

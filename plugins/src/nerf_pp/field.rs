@@ -1,5 +1,5 @@
-//! The runtime of the `nerf++` field: per level (coarse, fine) a foreground and an optional
-//! background [`NerfMlp`], each point routed to one of them.
+//! The runtime of the `nerf++` field: per level (coarse, fine, paired by [`CoarseFine`]) a
+//! foreground and an optional background [`NerfMlp`], each point routed to one of them.
 
 use std::any::Any;
 
@@ -7,12 +7,11 @@ use rand::SeedableRng;
 use sos_core::camera::Vec3;
 use sos_core::encoding::{positional_encoding, positional_encoding_dim};
 use sos_core::nn::Adam;
-use sos_core::plugin::field::Hierarchical;
 use sos_core::plugin::{FieldTape, RadianceField};
 use sos_core::render::contraction::Contraction;
 
 use super::NerfPpConfig;
-use crate::nerf::{read_params, write_params, NerfMlp, NerfTape};
+use crate::nerf::{read_params, write_params, CoarseFine, Level, NerfMlp, NerfTape};
 
 /// How world points map to the networks.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -140,12 +139,14 @@ impl NerfPpNet {
         }
         parts
     }
+}
 
-    fn params(&self) -> Vec<&NerfMlp> {
+impl Level for NerfPpNet {
+    fn mlps(&self) -> Vec<&NerfMlp> {
         std::iter::once(&self.fg).chain(self.bg.as_ref()).collect()
     }
 
-    fn params_mut(&mut self) -> Vec<&mut NerfMlp> {
+    fn mlps_mut(&mut self) -> Vec<&mut NerfMlp> {
         std::iter::once(&mut self.fg).chain(self.bg.as_mut()).collect()
     }
 }
@@ -234,11 +235,11 @@ impl RadianceField for NerfPpNet {
     }
 
     fn gradients_finite(&self) -> bool {
-        self.params().iter().all(|m| m.gradients_finite())
+        self.mlps().iter().all(|m| m.gradients_finite())
     }
 
     fn discard_gradients(&mut self) {
-        self.params_mut().into_iter().for_each(NerfMlp::zero_grad);
+        self.mlps_mut().into_iter().for_each(NerfMlp::zero_grad);
     }
 
     fn seg_input_dim(&self) -> usize {
@@ -267,114 +268,30 @@ impl RadianceField for NerfPpNet {
     }
 
     fn save_state(&self) -> Vec<u8> {
-        write_params(&self.params())
+        write_params(&self.mlps())
     }
 
     fn load_state(&mut self, bytes: &[u8]) -> Result<(), String> {
-        read_params(bytes, &mut self.params_mut())
+        read_params(bytes, &mut self.mlps_mut())
     }
 
     fn num_parameters(&self) -> usize {
-        self.params().iter().map(|m| m.num_parameters()).sum()
+        self.mlps().iter().map(|m| m.num_parameters()).sum()
     }
 }
 
 /// The `nerf++` field: fine and coarse levels.
-pub struct NerfPpField {
-    config: NerfPpConfig,
-    fine: NerfPpNet,
-    coarse: NerfPpNet,
-}
+pub type NerfPpField = CoarseFine<NerfPpNet>;
 
-impl NerfPpField {
-    /// Builds both levels (the coarse one also with `hierarchical = false`, so checkpoints
-    /// load either way).
+impl CoarseFine<NerfPpNet> {
+    /// Builds both levels.
     pub fn new(config: NerfPpConfig, space: Space, seed: u64) -> Self {
-        NerfPpField {
-            fine: NerfPpNet::new(&config, space, seed ^ 0xF1),
-            coarse: NerfPpNet::new(&config, space, seed ^ 0xC0),
-            config,
-        }
+        CoarseFine::build(seed, config.as_nerf().sampling(), |seed| NerfPpNet::new(&config, space, seed))
     }
 
     /// Whether a background network exists.
     pub fn has_background(&self) -> bool {
-        self.fine.bg.is_some()
-    }
-
-    fn all(&self) -> Vec<&NerfMlp> {
-        self.fine.params().into_iter().chain(self.coarse.params()).collect()
-    }
-}
-
-impl RadianceField for NerfPpField {
-    fn density(&self, positions: &[Vec3], density: &mut [f32]) {
-        self.fine.density(positions, density);
-    }
-
-    fn forward(&self, p: &[Vec3], d: &[Vec3], density: &mut [f32], rgb: &mut [[f32; 3]], record: bool) -> FieldTape {
-        self.fine.forward(p, d, density, rgb, record)
-    }
-
-    fn backward(&mut self, p: &[Vec3], d: &[Vec3], tape: FieldTape, gd: &[f32], gc: &[[f32; 3]]) {
-        self.fine.backward(p, d, tape, gd, gc);
-    }
-
-    fn step(&mut self, lr_factor: f32) {
-        self.fine.step(lr_factor);
-        if self.config.hierarchical {
-            self.coarse.step(lr_factor);
-        }
-    }
-
-    fn gradients_finite(&self) -> bool {
-        self.fine.gradients_finite() && self.coarse.gradients_finite()
-    }
-
-    fn discard_gradients(&mut self) {
-        self.fine.discard_gradients();
-        self.coarse.discard_gradients();
-    }
-
-    fn hierarchical(&self) -> Option<Hierarchical> {
-        self.config.hierarchical.then_some(Hierarchical {
-            coarse_samples: self.config.coarse_samples,
-            fine_samples: self.config.fine_samples,
-        })
-    }
-
-    fn coarse(&self) -> Option<&dyn RadianceField> {
-        self.config.hierarchical.then_some(&self.coarse as &dyn RadianceField)
-    }
-
-    fn coarse_mut(&mut self) -> Option<&mut dyn RadianceField> {
-        if self.config.hierarchical {
-            Some(&mut self.coarse)
-        } else {
-            None
-        }
-    }
-
-    fn seg_input_dim(&self) -> usize {
-        self.fine.seg_input_dim()
-    }
-
-    fn seg_input(&self, positions: &[Vec3], out: &mut [f32]) {
-        self.fine.seg_input(positions, out);
-    }
-
-    fn save_state(&self) -> Vec<u8> {
-        write_params(&self.all())
-    }
-
-    fn load_state(&mut self, bytes: &[u8]) -> Result<(), String> {
-        let mut nets: Vec<&mut NerfMlp> = self.fine.params_mut();
-        nets.extend(self.coarse.params_mut());
-        read_params(bytes, &mut nets)
-    }
-
-    fn num_parameters(&self) -> usize {
-        self.fine.num_parameters() + if self.config.hierarchical { self.coarse.num_parameters() } else { 0 }
+        self.fine().bg.is_some()
     }
 }
 
@@ -444,15 +361,15 @@ mod tests {
         f.backward(&positions, &dirs, tape, &gd, &gc);
         let mut checked = 0;
         for net in 0..2 {
-            let n_params = f.params()[net].params().len();
+            let n_params = f.mlps()[net].params().len();
             for pi in 0..n_params {
-                let g = f.params()[net].params()[pi].grad.clone();
+                let g = f.mlps()[net].params()[pi].grad.clone();
                 for j in 0..g.len() {
                     let h = 1e-3f32;
                     let mut plus = NerfPpNet::new(&cfg, sphere_space(true), 5);
-                    plus.params_mut()[net].params_mut()[pi].value[j] += h;
+                    plus.mlps_mut()[net].params_mut()[pi].value[j] += h;
                     let mut minus = NerfPpNet::new(&cfg, sphere_space(true), 5);
-                    minus.params_mut()[net].params_mut()[pi].value[j] -= h;
+                    minus.mlps_mut()[net].params_mut()[pi].value[j] -= h;
                     let fd = (loss(&plus) - loss(&minus)) / (2.0 * h as f64);
                     let an = g[j] as f64;
                     assert!((fd - an).abs() <= 3e-3 + 2e-2 * fd.abs().max(an.abs()), "net {net} param {pi}[{j}]: {an} vs fd {fd}");

@@ -32,7 +32,8 @@ use sos_core::registry::Registration;
 use sos_core::render::contraction::Contraction;
 use sos_core::scene::SceneExtent;
 
-use crate::nerf::{DensityActivation, NerfShape};
+use crate::nerf::limits::Limits;
+use crate::nerf::{DensityActivation, NerfConfig, NerfShape};
 pub use field::{NerfPpField, NerfPpNet, Space};
 
 /// Whether the background network exists.
@@ -95,49 +96,37 @@ impl Default for NerfPpConfig {
 }
 
 impl NerfPpConfig {
-    fn invalid(key: &str, reason: impl Into<String>) -> BuildError {
-        BuildError::Invalid { kind: "nerf++".into(), key: key.into(), reason: reason.into() }
-    }
-
-    /// The network sizes for inputs of `in_dim` coordinates.
-    pub fn shape(&self, in_dim: usize) -> NerfShape {
-        NerfShape {
-            in_dim,
+    /// The settings of each network and of the sampling, as a `nerf` config (NeRF++ is a NeRF
+    /// per region).
+    pub fn as_nerf(&self) -> NerfConfig {
+        NerfConfig {
+            hierarchical: self.hierarchical,
+            coarse_samples: self.coarse_samples,
+            fine_samples: self.fine_samples,
             pos_frequencies: self.pos_frequencies,
             dir_frequencies: self.dir_frequencies,
             depth: self.depth,
             width: self.width,
-            skip: (self.skip > 0).then_some(self.skip),
+            skip: self.skip,
             view_width: self.view_width,
+            density_activation: self.density_activation,
+            lr: self.lr,
         }
+    }
+
+    /// The network sizes for inputs of `in_dim` coordinates.
+    pub fn shape(&self, in_dim: usize) -> NerfShape {
+        NerfShape { in_dim, ..self.as_nerf().shape() }
     }
 
     /// Checks the ranges the types cannot express.
     pub fn validate(&self) -> Result<(), BuildError> {
-        if self.hierarchical && !(2..=2048).contains(&self.coarse_samples) {
-            return Err(Self::invalid("coarse_samples", "must be in 2..=2048"));
-        }
-        if self.hierarchical && self.fine_samples > 4096 {
-            return Err(Self::invalid("fine_samples", "must be at most 4096"));
-        }
-        if self.pos_frequencies > 16 || self.dir_frequencies > 16 {
-            return Err(Self::invalid("pos_frequencies", "`pos_frequencies` and `dir_frequencies` must be at most 16"));
-        }
-        if !(1..=32).contains(&self.depth) {
-            return Err(Self::invalid("depth", "must be in 1..=32"));
-        }
-        if !(1..=4096).contains(&self.width) || !(1..=4096).contains(&self.view_width) {
-            return Err(Self::invalid("width", "`width` and `view_width` must be in 1..=4096"));
-        }
-        if self.skip >= self.depth {
-            return Err(Self::invalid("skip", format!("must be 0 (no skip) or a trunk layer in 1..{}", self.depth)));
-        }
-        if !(self.lr > 0.0 && self.lr.is_finite()) {
-            return Err(Self::invalid("lr", "must be a positive number"));
-        }
-        Ok(())
+        LIMITS.check(&self.as_nerf())
     }
 }
+
+/// The bounds and wording of `nerf++`'s checks.
+const LIMITS: Limits = Limits { kind: "nerf++", max_coarse_samples: 2048, skip_error_names_depth: false };
 
 #[typetag::serde(name = "nerf++")]
 impl RadianceFieldConfig for NerfPpConfig {
@@ -146,7 +135,7 @@ impl RadianceFieldConfig for NerfPpConfig {
         let space = match *extent {
             SceneExtent::Unbounded { center, radius } => {
                 if !(radius > 0.0 && radius.is_finite()) {
-                    return Err(Self::invalid("scene", "the scene's foreground sphere needs a positive radius"));
+                    return Err(LIMITS.invalid("scene", "the scene's foreground sphere needs a positive radius"));
                 }
                 Space::Sphere { center, radius, background: self.background == Background::Auto }
             }
@@ -176,11 +165,7 @@ mod tests {
             (NerfPpConfig { coarse_samples: 0, ..Default::default() }, "coarse_samples"),
             (NerfPpConfig { width: 0, ..Default::default() }, "width"),
         ] {
-            match cfg.build(&extent, 0) {
-                Err(BuildError::Invalid { key: k, .. }) => assert_eq!(k, key),
-                Err(e) => panic!("unexpected error {e}"),
-                Ok(_) => panic!("{key} should be rejected"),
-            }
+            crate::nerf::limits::assert_rejects(&cfg, &extent, key);
         }
         let bad_sphere = SceneExtent::Unbounded { center: [0.0; 3], radius: 0.0 };
         assert!(NerfPpConfig::default().build(&bad_sphere, 0).is_err());

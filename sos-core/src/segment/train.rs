@@ -18,6 +18,7 @@ use crate::segment::head::SegHead;
 use crate::segment::head_pass;
 use crate::segment::patches::{patch_rays, Patch, PatchSampler};
 use crate::segment::teacher::{captured_patch, Teacher};
+use crate::train::progress::log_line;
 use crate::train::session::{kind_of, Session};
 
 /// Consecutive non-finite losses after which stage 2 stops.
@@ -148,7 +149,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
     while seg.step < cfg.steps {
         let patches = seg.sampler.next_batch(&session.scene, n_patches);
         for notice in seg.sampler.take_notices() {
-            bar.println(format!("notice: {notice}"));
+            log_line(&bar, format!("notice: {notice}"));
         }
         let timer = Instant::now();
         let rays = patch_rays(&session.scene, &patches);
@@ -210,7 +211,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
         }
         if !stats.total.is_finite() || grad_logits.iter().any(|g| !g.is_finite()) {
             bad_steps += 1;
-            bar.println(format!(
+            log_line(&bar, format!(
                 "stage 2 step {}: non-finite loss or gradient (views {:?}), step skipped",
                 seg.step,
                 patches.iter().map(|p| p.view).collect::<Vec<_>>()

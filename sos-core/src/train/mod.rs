@@ -4,6 +4,7 @@ pub mod checkpoint;
 pub mod evaluate;
 pub mod memory;
 pub mod photometric;
+pub mod progress;
 pub mod session;
 
 pub use session::Session;

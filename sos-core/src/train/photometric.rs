@@ -9,6 +9,7 @@ use crate::error::RunError;
 use crate::render::composite::{RayColor, RayGrad};
 use crate::render::rays::RayBatch;
 use crate::render::renderer::render;
+use crate::train::progress::log_line;
 use crate::train::session::Session;
 
 /// Consecutive non-finite losses after which training stops.
@@ -178,7 +179,7 @@ pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<S
         if !finite {
             session.field.discard_gradients();
             bad_steps += 1;
-            bar.println(format!(
+            log_line(&bar, format!(
                 "stage 1 step {}: non-finite loss or gradient (mse {mse}, coarse mse {coarse_mse}), step skipped; batch: {}",
                 session.step,
                 describe_bad_rays(&r.colors, coarse.as_ref().map(|c| &c.colors[..]), &pixels)

@@ -1,0 +1,122 @@
+//! The fine and coarse levels of the NeRF-style fields (`nerf`, `nerf++`): the fine level is
+//! the field, the coarse level is the renderer's proposal network. Both levels are always
+//! built and saved, fine first, so that checkpoints load whatever `hierarchical` says and the
+//! switch is a pure ablation.
+
+use sos_core::camera::Vec3;
+use sos_core::plugin::field::Hierarchical;
+use sos_core::plugin::{FieldTape, RadianceField};
+
+use super::field::{read_params, write_params};
+use super::network::NerfMlp;
+
+/// One level of a [`CoarseFine`] field: a field in its own right whose networks a checkpoint
+/// lists in this order.
+pub trait Level: RadianceField {
+    /// The level's networks, in checkpoint order.
+    fn mlps(&self) -> Vec<&NerfMlp>;
+
+    /// [`Level::mlps`], mutable (to load a checkpoint).
+    fn mlps_mut(&mut self) -> Vec<&mut NerfMlp>;
+}
+
+/// A fine and a coarse level of one kind, as one field.
+pub struct CoarseFine<L> {
+    fine: L,
+    coarse: L,
+    /// The proposal pass the renderer runs with the coarse level; `None` leaves the coarse
+    /// level unused and untrained.
+    sampling: Option<Hierarchical>,
+}
+
+impl<L: Level> CoarseFine<L> {
+    /// Builds both levels with `level`: the fine one seeded `seed ^ 0xF1`, the coarse one
+    /// `seed ^ 0xC0`, so that runs with one seed keep their initialisation.
+    pub fn build(seed: u64, sampling: Option<Hierarchical>, level: impl Fn(u64) -> L) -> Self {
+        CoarseFine { fine: level(seed ^ 0xF1), coarse: level(seed ^ 0xC0), sampling }
+    }
+
+    /// The fine level.
+    pub fn fine(&self) -> &L {
+        &self.fine
+    }
+
+    /// Both levels, fine first.
+    pub fn networks(&self) -> [&L; 2] {
+        [&self.fine, &self.coarse]
+    }
+
+    /// Both levels, fine first.
+    pub fn networks_mut(&mut self) -> [&mut L; 2] {
+        [&mut self.fine, &mut self.coarse]
+    }
+}
+
+impl<L: Level> RadianceField for CoarseFine<L> {
+    fn density(&self, positions: &[Vec3], density: &mut [f32]) {
+        self.fine.density(positions, density);
+    }
+
+    fn forward(&self, p: &[Vec3], d: &[Vec3], density: &mut [f32], rgb: &mut [[f32; 3]], record: bool) -> FieldTape {
+        self.fine.forward(p, d, density, rgb, record)
+    }
+
+    fn backward(&mut self, p: &[Vec3], d: &[Vec3], tape: FieldTape, gd: &[f32], gc: &[[f32; 3]]) {
+        self.fine.backward(p, d, tape, gd, gc);
+    }
+
+    fn step(&mut self, lr_factor: f32) {
+        self.fine.step(lr_factor);
+        if self.sampling.is_some() {
+            self.coarse.step(lr_factor);
+        }
+    }
+
+    fn gradients_finite(&self) -> bool {
+        self.fine.gradients_finite() && self.coarse.gradients_finite()
+    }
+
+    fn discard_gradients(&mut self) {
+        self.fine.discard_gradients();
+        self.coarse.discard_gradients();
+    }
+
+    fn hierarchical(&self) -> Option<Hierarchical> {
+        self.sampling
+    }
+
+    fn coarse(&self) -> Option<&dyn RadianceField> {
+        self.sampling.is_some().then_some(&self.coarse as &dyn RadianceField)
+    }
+
+    fn coarse_mut(&mut self) -> Option<&mut dyn RadianceField> {
+        if self.sampling.is_some() {
+            Some(&mut self.coarse)
+        } else {
+            None
+        }
+    }
+
+    fn seg_input_dim(&self) -> usize {
+        self.fine.seg_input_dim()
+    }
+
+    fn seg_input(&self, positions: &[Vec3], out: &mut [f32]) {
+        self.fine.seg_input(positions, out);
+    }
+
+    fn save_state(&self) -> Vec<u8> {
+        let nets: Vec<&NerfMlp> = self.fine.mlps().into_iter().chain(self.coarse.mlps()).collect();
+        write_params(&nets)
+    }
+
+    fn load_state(&mut self, bytes: &[u8]) -> Result<(), String> {
+        let mut nets = self.fine.mlps_mut();
+        nets.extend(self.coarse.mlps_mut());
+        read_params(bytes, &mut nets)
+    }
+
+    fn num_parameters(&self) -> usize {
+        self.fine.num_parameters() + if self.sampling.is_some() { self.coarse.num_parameters() } else { 0 }
+    }
+}
