@@ -59,6 +59,11 @@ const ORIENTATION_SCALE: f32 = 2.0;
 pub struct CellStatsConfig {
     /// Cell side in pixels (one feature vector per cell); at least 2.
     pub cell: usize,
+    /// Side of the square window, centred on each cell, whose pixels make the cell's
+    /// statistics; absent = the cell itself. A window larger than the cell gives a finer grid
+    /// (like DINO's 14x14 on a 64x64 patch) without the noise of statistics over few pixels.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub window: Option<usize>,
     /// Bins of the gradient-orientation histogram over `[0, π)`; 2 to 64.
     pub orientation_bins: usize,
     /// Weight of the mean-colour channels.
@@ -91,6 +96,7 @@ impl Default for CellStatsConfig {
     fn default() -> Self {
         CellStatsConfig {
             cell: 8,
+            window: None,
             orientation_bins: 8,
             colour_weight: 1.0,
             spread_weight: 0.5,
@@ -114,6 +120,11 @@ impl CellStatsConfig {
         };
         if !(2..=4096).contains(&self.cell) {
             return invalid("cell", "must be between 2 and 4096 pixels");
+        }
+        if let Some(window) = self.window {
+            if !(self.cell..=4096).contains(&window) {
+                return invalid("window", "must be at least `cell` and at most 4096 pixels (or absent)");
+            }
         }
         if !(2..=64).contains(&self.orientation_bins) {
             return invalid("orientation_bins", "must be between 2 and 64");
@@ -195,12 +206,18 @@ impl CellStats {
         let (gh, gw) = ((h / cell).max(1), (w / cell).max(1));
         let (ch, cw) = (cell.min(h), cell.min(w));
 
+        let window = self.config.window.unwrap_or(cell);
+        let (wh, ww) = (window.min(h), window.min(w));
+
         let (magnitude, orientation) = gradients(image);
         let cells: Vec<Vec<f32>> = (0..gh * gw)
             .into_par_iter()
             .map(|i| {
                 let (r0, c0) = ((i / gw) * ch, (i % gw) * cw);
-                self.cell_features(image, &magnitude, &orientation, r0, c0, ch, cw)
+                // The window shares the cell's centre, shifted to stay inside the image.
+                let r0 = (r0 + ch / 2).saturating_sub(wh / 2).min(h - wh);
+                let c0 = (c0 + cw / 2).saturating_sub(ww / 2).min(w - ww);
+                self.cell_features(image, &magnitude, &orientation, r0, c0, wh, ww)
             })
             .collect();
 
@@ -223,7 +240,7 @@ impl CellStats {
         FeatureMap { channels, height: gh, width: gw, data, cls, saliency: Some(saliency) }
     }
 
-    /// Feature vector of the `ch`×`cw` cell whose top-left pixel is `(r0, c0)`.
+    /// Feature vector of the `ch`×`cw` window whose top-left pixel is `(r0, c0)`.
     #[allow(clippy::too_many_arguments)]
     fn cell_features(
         &self,
@@ -292,9 +309,10 @@ impl FeatureExtractor for CellStats {
     fn identity(&self) -> String {
         let c = &self.config;
         format!(
-            "{KIND}/v{VERSION} cell={} orientation_bins={} colour_weight={} spread_weight={} \
+            "{KIND}/v{VERSION} cell={} window={:?} orientation_bins={} colour_weight={} spread_weight={} \
              orientation_weight={} energy_weight={} saliency_weight={} saliency_scale={:?}",
             c.cell,
+            c.window,
             c.orientation_bins,
             c.colour_weight,
             c.spread_weight,
@@ -457,6 +475,28 @@ mod tests {
         let cfg = CellStatsConfig { cell: 4, orientation_bins: 12, ..Default::default() };
         let map = CellStats::new(cfg).unwrap().extract_one(&img);
         assert_eq!((map.channels, map.height, map.width), (20, 5, 9));
+    }
+
+    #[test]
+    fn a_window_keeps_the_cell_grid_and_widens_the_statistics() {
+        // Left half red, right half blue, boundary at x = 32.
+        let img = image(64, 32, |c, _| if c < 32 { [0.9, 0.1, 0.1] } else { [0.1, 0.1, 0.9] });
+        let with = |window| {
+            let cfg = CellStatsConfig { cell: 4, window, saliency_weight: 0.0, ..Default::default() };
+            CellStats::new(cfg).unwrap().extract_one(&img)
+        };
+        let (plain, same, wide) = (with(None), with(Some(4)), with(Some(12)));
+        assert_eq!(plain, same, "a window of one cell is the cell");
+        assert_eq!((wide.height, wide.width), (plain.height, plain.width));
+        // Channel 0 is red–green: the cell left of the boundary (column 7) is pure red alone,
+        // but its 12-px window reaches 4 px into the blue half.
+        let red_green = |m: &FeatureMap, c: usize| m.data[2 * m.width + c];
+        assert!((red_green(&plain, 7) - red_green(&plain, 0)).abs() < 1e-6);
+        assert!(red_green(&wide, 7) < red_green(&wide, 0) - 0.1);
+        // Far from the boundary and at the image edge (window shifted inside) nothing changes.
+        assert!((red_green(&wide, 0) - red_green(&plain, 0)).abs() < 1e-6);
+        let bad = CellStatsConfig { cell: 8, window: Some(4), ..Default::default() };
+        assert!(CellStats::new(bad).is_err(), "a window smaller than the cell is refused");
     }
 
     #[test]

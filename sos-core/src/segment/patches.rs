@@ -5,6 +5,8 @@
 //! The sampler draws from its own seeded generator: the sequence of patches depends on the
 //! seed alone, so a clone of the sampler foresees which placements a run will draw.
 
+use std::collections::BTreeSet;
+
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -30,8 +32,10 @@ pub struct PatchSampler {
     rng: ChaCha8Rng,
     order: Vec<usize>,
     cursor: usize,
-    /// Strides actually used per view (smaller than wanted for small images).
+    /// Notices not yet taken about reduced strides (small images).
     notices: Vec<String>,
+    /// Image sizes already noticed: each is reported once per run, not once per view or step.
+    noticed_sizes: BTreeSet<(u32, u32)>,
 }
 
 impl PatchSampler {
@@ -46,6 +50,7 @@ impl PatchSampler {
             order: Vec::new(),
             cursor: 0,
             notices: Vec::new(),
+            noticed_sizes: BTreeSet::new(),
         }
     }
 
@@ -101,19 +106,15 @@ impl PatchSampler {
             let stride = self
                 .stride_for(cam.width, cam.height)
                 .expect("PatchSampler::check rejects views too small for a patch");
-            if stride != self.wanted_stride {
-                let msg = format!(
-                    "view {} ({}x{}) is smaller than {} px: patch stride {} instead of {}",
-                    scene.views[view].name,
+            if stride != self.wanted_stride && self.noticed_sizes.insert((cam.width, cam.height)) {
+                self.notices.push(format!(
+                    "views of {}x{} are smaller than {} px: patch stride {} instead of {}",
                     cam.width,
                     cam.height,
                     (self.size - 1) * self.wanted_stride + 1,
                     stride,
                     self.wanted_stride
-                );
-                if !self.notices.contains(&msg) {
-                    self.notices.push(msg);
-                }
+                ));
             }
             let span = (self.size - 1) * stride + 1;
             let col0 = grid_offset(cam.width - span, self.offset_grid, &mut self.rng);
@@ -180,7 +181,10 @@ mod tests {
             let (c, r) = p.grid.pixel(63, 63);
             assert!(c < 400 && r < 300);
         }
-        assert_eq!(sampler.take_notices().len(), 8);
+        // One notice for the image size, however many views and steps share it.
+        assert_eq!(sampler.take_notices().len(), 1);
+        sampler.next_batch(&s, 8);
+        assert!(sampler.take_notices().is_empty());
         assert_eq!(patch_rays(&s, &batch).len(), 8 * 64 * 64);
     }
 
