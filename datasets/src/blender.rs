@@ -18,6 +18,7 @@ use sos_core::scene::{Scene, SceneExtent, View};
 
 use crate::adapter::register_dataset;
 use crate::image_files::{find_image, find_with_stem, load_mask, stem};
+use crate::text::invalid;
 
 /// Configuration of the `blender` dataset (`[scene] kind = "blender"`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -57,13 +58,6 @@ register_dataset!(
     "NeRF-synthetic layout (transforms_{train,test}.json, RGBA on white)",
     load_blender
 );
-
-fn invalid(path: &Path, message: impl Into<String>) -> DatasetError {
-    DatasetError::Invalid {
-        path: path.to_path_buf(),
-        message: message.into(),
-    }
-}
 
 #[derive(Deserialize)]
 struct Transforms {

@@ -5,6 +5,8 @@ use std::path::{Path, PathBuf};
 use sos_core::image::GrayImage;
 use sos_core::plugin::dataset::DatasetError;
 
+use crate::text::invalid;
+
 /// File extensions accepted as images, in order of preference when several files share a stem.
 pub const IMAGE_EXTENSIONS: [&str; 6] = ["png", "PNG", "jpg", "JPG", "jpeg", "JPEG"];
 
@@ -57,13 +59,10 @@ pub fn check_images_for(entries: std::fs::ReadDir, images: &Path) -> Result<(), 
     for e in entries.flatten() {
         let p = e.path();
         if p.extension().is_some_and(|x| x == "txt") && find_with_stem(images, stem(&p)).is_none() {
-            return Err(DatasetError::Invalid {
-                path: p,
-                message: format!(
-                    "no image with this stem in {}; remove the file or add the image",
-                    images.display()
-                ),
-            });
+            return Err(invalid(
+                &p,
+                format!("no image with this stem in {}; remove the file or add the image", images.display()),
+            ));
         }
     }
     Ok(())

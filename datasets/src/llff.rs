@@ -30,6 +30,7 @@ use crate::adapter::{hold_out_views, register_dataset};
 use crate::image_files::{find_with_stem, list_images, load_mask, stem};
 use crate::npy::read_npy;
 use crate::pose::{self, Pose};
+use crate::text::invalid;
 
 /// Configuration of the `llff` dataset (`[scene] kind = "llff"`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -75,13 +76,6 @@ register_dataset!(
     "forward-facing LLFF captures (poses_bounds.npy + images_N/), as NeRF's load_llff.py",
     load_llff
 );
-
-fn invalid(path: &Path, message: impl Into<String>) -> DatasetError {
-    DatasetError::Invalid {
-        path: path.to_path_buf(),
-        message: message.into(),
-    }
-}
 
 /// One row of `poses_bounds.npy`, validated.
 struct PoseRow {

@@ -37,9 +37,7 @@ use sos_core::camera::Camera;
 use sos_core::plugin::dataset::{DatasetConfig, DatasetError};
 use sos_core::scene::{Scene, SceneExtent, View};
 
-use crate::adapter::register_dataset;
-// Public here too, where the split was first defined.
-pub use crate::adapter::hold_out_split;
+use crate::adapter::{hold_out_split, register_dataset};
 use crate::pose::{self, Pose};
 pub use world::{OBJECT_CENTRE, OBJECT_RADIUS, ROOM_MAX, ROOM_MIN};
 

@@ -1,6 +1,6 @@
 //! The checks of the settings `nerf` and `nerf++` share (sampling, network sizes, learning
 //! rate), in one order so that both kinds name the same key first; each kind keeps its own
-//! bounds and wording.
+//! bounds.
 
 use sos_core::error::BuildError;
 
@@ -12,8 +12,6 @@ pub struct Limits {
     pub kind: &'static str,
     /// Largest `coarse_samples`.
     pub max_coarse_samples: usize,
-    /// Whether the `skip` error repeats the depth (`nerf`'s wording).
-    pub skip_error_names_depth: bool,
 }
 
 impl Limits {
@@ -43,12 +41,7 @@ impl Limits {
         }
         if config.skip >= config.depth {
             let depth = config.depth;
-            let reason = if self.skip_error_names_depth {
-                format!("must be 0 (no skip) or a trunk layer in 1..{depth} (depth = {depth})")
-            } else {
-                format!("must be 0 (no skip) or a trunk layer in 1..{depth}")
-            };
-            return Err(self.invalid("skip", reason));
+            return Err(self.invalid("skip", format!("must be 0 (no skip) or a trunk layer in 1..{depth} (depth = {depth})")));
         }
         if !(config.lr > 0.0 && config.lr.is_finite()) {
             return Err(self.invalid("lr", "must be a positive number"));

@@ -106,8 +106,8 @@ impl NerfConfig {
     }
 }
 
-/// The bounds and wording of `nerf`'s checks.
-const LIMITS: Limits = Limits { kind: "nerf", max_coarse_samples: 1024, skip_error_names_depth: true };
+/// The bounds of `nerf`'s checks.
+const LIMITS: Limits = Limits { kind: "nerf", max_coarse_samples: 1024 };
 
 #[typetag::serde(name = "nerf")]
 impl RadianceFieldConfig for NerfConfig {

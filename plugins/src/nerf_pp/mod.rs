@@ -125,8 +125,8 @@ impl NerfPpConfig {
     }
 }
 
-/// The bounds and wording of `nerf++`'s checks.
-const LIMITS: Limits = Limits { kind: "nerf++", max_coarse_samples: 2048, skip_error_names_depth: false };
+/// The bounds of `nerf++`'s checks.
+const LIMITS: Limits = Limits { kind: "nerf++", max_coarse_samples: 2048 };
 
 #[typetag::serde(name = "nerf++")]
 impl RadianceFieldConfig for NerfPpConfig {
