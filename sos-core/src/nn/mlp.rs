@@ -35,7 +35,7 @@ pub struct Mlp {
 }
 
 /// What [`Mlp::backward`] needs from a forward pass.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 pub struct MlpTape {
     n: usize,
     /// `[n, in_dim]`: the network input.
@@ -151,40 +151,52 @@ impl Mlp {
     /// # Shapes
     /// `x`: `[n, in_dim]`; returns `[n, out_dim]`.
     pub fn forward(&self, x: &[f32], n: usize) -> (Vec<f32>, MlpTape) {
+        let mut tape = MlpTape::default();
+        let out = self.forward_into(x, n, &mut tape);
+        (out, tape)
+    }
+
+    /// [`Mlp::forward`] into an existing tape, whose buffers are reused: a caller that tapes
+    /// many same-sized batches step after step allocates (and page-faults) them only once.
+    ///
+    /// # Shapes
+    /// `x`: `[n, in_dim]`; returns `[n, out_dim]`.
+    pub fn forward_into(&self, x: &[f32], n: usize, tape: &mut MlpTape) -> Vec<f32> {
         assert_eq!(
             x.len(),
             n * self.in_dim(),
             "Mlp::forward: input is not [n, in_dim]"
         );
         let num_layers = self.layers.len();
-        let mut hidden: Vec<Vec<f32>> = Vec::with_capacity(num_layers - 1);
+        tape.n = n;
+        tape.input.clear();
+        tape.input.extend_from_slice(x);
+        tape.hidden.resize_with(num_layers - 1, Vec::new);
         let mut out = Vec::new();
         for (l, layer) in self.layers.iter().enumerate() {
-            let mut y = vec![0.0f32; n * layer.out_dim];
+            let mut y = if l + 1 < num_layers {
+                let mut y = std::mem::take(&mut tape.hidden[l]);
+                // Every element is overwritten below: only a change of size needs a resize.
+                y.resize(n * layer.out_dim, 0.0);
+                y
+            } else {
+                vec![0.0f32; n * layer.out_dim]
+            };
             {
-                let prev: &[f32] = if l == 0 { &[] } else { &hidden[l - 1] };
+                let prev: &[f32] = if l == 0 { &[] } else { &tape.hidden[l - 1] };
                 layer.forward_blocks(&self.blocks(l, x, prev, n), &mut y, self.act(l));
             }
             if l + 1 < num_layers {
-                hidden.push(y);
+                tape.hidden[l] = y;
             } else {
                 out = y;
             }
         }
-        let output = if self.output == Activation::Identity {
-            Vec::new()
-        } else {
-            out.clone()
-        };
-        (
-            out,
-            MlpTape {
-                n,
-                input: x.to_vec(),
-                hidden,
-                output,
-            },
-        )
+        tape.output.clear();
+        if self.output != Activation::Identity {
+            tape.output.extend_from_slice(&out);
+        }
+        out
     }
 
     /// Forward pass without a tape, processed in blocks of rows to bound memory.

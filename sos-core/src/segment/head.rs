@@ -36,6 +36,11 @@ impl SegHead {
         self.mlp.forward(input, n)
     }
 
+    /// [`SegHead::forward`] into a tape whose buffers are reused.
+    pub fn forward_into(&self, input: &[f32], n: usize, tape: &mut MlpTape) -> Vec<f32> {
+        self.mlp.forward_into(input, n, tape)
+    }
+
     /// Logits without a tape (inference).
     pub fn infer(&self, input: &[f32], n: usize) -> Vec<f32> {
         self.mlp.infer(input, n)

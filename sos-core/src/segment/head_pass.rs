@@ -1,18 +1,51 @@
 //! The segmentation head over a whole stage-2 batch of ray samples, in chunks.
 //!
-//! A step has about a million surviving samples. Taping the head over all of them at once
-//! allocates and first-touches some 2 GB per step (the input copy, the 128-wide hidden layer and
-//! the backward's two ping-pong buffers), which made the backward pass slow and erratic. Here
-//! the forward pass keeps only the per-sample logits, and the backward pass recomputes each
-//! chunk's segmentation input and taped forward before back-propagating it: one extra head
+//! A step has about a million surviving samples. The forward pass runs the head chunk by
+//! chunk (the field's segmentation input of a chunk stays in cache) and keeps each chunk's
+//! tape for the backward pass in a [`HeadTapes`] that lives across steps, so its buffers are
+//! allocated and page-faulted once, not every step (fresh gigabytes per step made the
+//! backward pass slow and erratic). When a batch's tapes would exceed the memory budget, the
+//! backward pass instead recomputes each chunk's input and forward pass: one extra head
 //! forward in exchange for buffers that stay in cache.
 
 use crate::camera::Vec3;
+use crate::nn::MlpTape;
 use crate::plugin::RadianceField;
 use crate::segment::head::SegHead;
 
 /// Samples per chunk: large enough for full-speed GEMMs, small enough to stay in cache.
 const CHUNK: usize = 8192;
+
+/// Bytes of tapes a step may keep (a million samples of a 43-wide input and a 128-wide
+/// hidden layer take 0.7 GB).
+pub const TAPE_BUDGET: usize = 4 << 30;
+
+/// The per-chunk tapes of the last forward pass, reused from step to step.
+#[derive(Debug)]
+pub struct HeadTapes {
+    tapes: Vec<MlpTape>,
+    /// Chunks of the last forward pass that have a tape (0 when it was over budget).
+    used: usize,
+    budget: usize,
+}
+
+impl Default for HeadTapes {
+    fn default() -> Self {
+        HeadTapes::with_budget(TAPE_BUDGET)
+    }
+}
+
+impl HeadTapes {
+    /// Tapes kept only while a batch's take at most `budget` bytes.
+    pub fn with_budget(budget: usize) -> Self {
+        HeadTapes { tapes: Vec::new(), used: 0, budget }
+    }
+
+    fn fits(&self, field: &dyn RadianceField, head: &SegHead, samples: usize) -> bool {
+        let per_sample = field.seg_input_dim() + head.mlp.layers[..head.mlp.layers.len() - 1].iter().map(|l| l.out_dim).sum::<usize>();
+        samples.saturating_mul(per_sample * std::mem::size_of::<f32>()) <= self.budget
+    }
+}
 
 /// Logits of every sample, `[n, outputs]`, without a tape.
 pub fn sample_logits(field: &dyn RadianceField, head: &SegHead, positions: &[Vec3]) -> Vec<f32> {
@@ -27,21 +60,53 @@ pub fn sample_logits(field: &dyn RadianceField, head: &SegHead, positions: &[Vec
     logits
 }
 
+/// Logits of every sample, `[n, outputs]`, keeping the chunks' tapes in `tapes` when they fit
+/// its budget, for [`backward`].
+pub fn forward(field: &dyn RadianceField, head: &SegHead, positions: &[Vec3], tapes: &mut HeadTapes) -> Vec<f32> {
+    tapes.used = 0;
+    if !tapes.fits(field, head, positions.len()) {
+        return sample_logits(field, head, positions);
+    }
+    let (dim, d) = (field.seg_input_dim(), head.outputs());
+    let mut logits = vec![0.0f32; positions.len() * d];
+    let mut input = vec![0.0f32; positions.len().min(CHUNK) * dim];
+    for (chunk, out) in positions.chunks(CHUNK).zip(logits.chunks_mut(CHUNK * d)) {
+        let x = &mut input[..chunk.len() * dim];
+        field.seg_input(chunk, x);
+        if tapes.used == tapes.tapes.len() {
+            tapes.tapes.push(MlpTape::default());
+        }
+        out.copy_from_slice(&head.forward_into(x, chunk.len(), &mut tapes.tapes[tapes.used]));
+        tapes.used += 1;
+    }
+    logits
+}
+
 /// Accumulates the head's parameter gradients for `grad_logits = ∂L/∂(sample logits)`,
-/// `[n, outputs]`, recomputing the forward pass chunk by chunk.
-pub fn backward(field: &dyn RadianceField, head: &mut SegHead, positions: &[Vec3], grad_logits: &[f32]) {
+/// `[n, outputs]`, from the tapes of the [`forward`] pass over the same `positions`, or by
+/// recomputing each chunk's forward pass where it kept none.
+pub fn backward(field: &dyn RadianceField, head: &mut SegHead, positions: &[Vec3], grad_logits: &[f32], tapes: &HeadTapes) {
     let (dim, d) = (field.seg_input_dim(), head.outputs());
     assert_eq!(grad_logits.len(), positions.len() * d, "head_pass::backward: gradient is not [n, outputs]");
-    let mut input = vec![0.0f32; positions.len().min(CHUNK) * dim];
-    for (chunk, grad) in positions.chunks(CHUNK).zip(grad_logits.chunks(CHUNK * d)) {
+    let taped = tapes.used > 0;
+    assert!(
+        !taped || tapes.used == positions.len().div_ceil(CHUNK),
+        "head_pass::backward: the tapes are from another batch"
+    );
+    let mut input = if taped { Vec::new() } else { vec![0.0f32; positions.len().min(CHUNK) * dim] };
+    for (i, (chunk, grad)) in positions.chunks(CHUNK).zip(grad_logits.chunks(CHUNK * d)).enumerate() {
         // Samples that no loss reaches (weight below every threshold) need no pass at all.
         if grad.iter().all(|&g| g == 0.0) {
             continue;
         }
-        let x = &mut input[..chunk.len() * dim];
-        field.seg_input(chunk, x);
-        let (_, tape) = head.forward(x, chunk.len());
-        head.backward(&tape, grad);
+        if taped {
+            head.backward(&tapes.tapes[i], grad);
+        } else {
+            let x = &mut input[..chunk.len() * dim];
+            field.seg_input(chunk, x);
+            let (_, tape) = head.forward(x, chunk.len());
+            head.backward(&tape, grad);
+        }
     }
 }
 
@@ -83,7 +148,8 @@ mod tests {
         }
     }
 
-    /// Chunked passes equal one pass over the whole batch (forward values and gradients).
+    /// Chunked passes equal one pass over the whole batch (forward values and gradients),
+    /// with tapes kept and with tapes recomputed.
     #[test]
     fn chunked_passes_match_the_whole_batch() {
         let field = Features;
@@ -95,25 +161,36 @@ mod tests {
             })
             .collect();
         let config = HeadConfig { hidden: vec![16], outputs: 2 };
-        let mut chunked = SegHead::new(&config, field.seg_input_dim(), 1e-3, 1);
-        let mut whole = chunked.clone();
+        let head = SegHead::new(&config, field.seg_input_dim(), 1e-3, 1);
+        let mut whole = head.clone();
 
         let mut input = vec![0.0; n * field.seg_input_dim()];
         field.seg_input(&positions, &mut input);
         let (expected, tape) = whole.forward(&input, n);
-        let got = sample_logits(&field, &chunked, &positions);
-        for (a, b) in got.iter().zip(&expected) {
-            assert!((a - b).abs() <= 1e-5 * (1.0 + b.abs()), "{a} vs {b}");
-        }
+        let close = |got: &[f32]| {
+            for (a, b) in got.iter().zip(&expected) {
+                assert!((a - b).abs() <= 1e-5 * (1.0 + b.abs()), "{a} vs {b}");
+            }
+        };
+        close(&sample_logits(&field, &head, &positions));
 
         let grad: Vec<f32> = (0..n * 2).map(|i| ((i * 37 % 101) as f32 / 101.0 - 0.5) * 1e-3).collect();
         whole.backward(&tape, &grad);
-        backward(&field, &mut chunked, &positions, &grad);
-        let (gw, gc) = (whole.mlp.params_mut(), chunked.mlp.params_mut());
-        for (pw, pc) in gw.iter().zip(&gc) {
-            let scale = pw.grad.iter().fold(0.0f32, |m, g| m.max(g.abs())).max(1e-12);
-            for (a, b) in pw.grad.iter().zip(&pc.grad) {
-                assert!((a - b).abs() <= 1e-4 * scale, "gradient {a} vs {b}");
+        // Kept tapes (reused over two passes, the first on a larger batch) and recomputed ones.
+        for budget in [TAPE_BUDGET, 0] {
+            let mut chunked = head.clone();
+            let mut tapes = HeadTapes::with_budget(budget);
+            let more: Vec<Vec3> = positions.iter().chain(&positions[..CHUNK]).copied().collect();
+            forward(&field, &chunked, &more, &mut tapes);
+            close(&forward(&field, &chunked, &positions, &mut tapes));
+            assert_eq!(tapes.used > 0, budget > 0);
+            backward(&field, &mut chunked, &positions, &grad, &tapes);
+            let (gw, gc) = (whole.mlp.params_mut(), chunked.mlp.params_mut());
+            for (pw, pc) in gw.iter().zip(&gc) {
+                let scale = pw.grad.iter().fold(0.0f32, |m, g| m.max(g.abs())).max(1e-12);
+                for (a, b) in pw.grad.iter().zip(&pc.grad) {
+                    assert!((a - b).abs() <= 1e-4 * scale, "gradient {a} vs {b} (budget {budget})");
+                }
             }
         }
     }

@@ -146,6 +146,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
     let started = Instant::now();
     let mut last = SegStepStats::default();
     let mut bad_steps = 0;
+    let mut tapes = head_pass::HeadTapes::default();
     while seg.step < cfg.steps {
         let patches = seg.sampler.next_batch(&session.scene, n_patches);
         for notice in seg.sampler.take_notices() {
@@ -157,7 +158,8 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
 
         // Head on the surviving samples, then logits composited with the field's weights.
         let n_samples = r.samples.len();
-        let sample_logits = head_pass::sample_logits(session.field.as_ref(), &seg.head, &r.samples.positions);
+        let t_field = timer.elapsed().as_secs_f64();
+        let sample_logits = head_pass::forward(session.field.as_ref(), &seg.head, &r.samples.positions, &mut tapes);
         let mut logits = vec![0.0f32; n_patches * d_seg * rays_per_patch];
         for ray in 0..rays.len() {
             let (patch, pix) = (ray / rays_per_patch, ray % rays_per_patch);
@@ -238,13 +240,14 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
                 }
             }
         }
-        head_pass::backward(session.field.as_ref(), &mut seg.head, &r.samples.positions, &grad_sample);
+        head_pass::backward(session.field.as_ref(), &mut seg.head, &r.samples.positions, &grad_sample, &tapes);
         let lr_factor = cfg.final_lr_factor.powf(seg.step as f32 / cfg.steps.max(1) as f32);
         seg.head.step(lr_factor);
         if std::env::var("SOS_PROFILE").is_ok() {
             eprintln!(
-                "stage 2: render+head {:.3} teacher {:.3} losses {:.3} backward {:.3}",
-                t_render,
+                "stage 2: render {:.3} head {:.3} teacher {:.3} losses {:.3} backward {:.3}",
+                t_field,
+                t_render - t_field,
                 t_teacher - t_render,
                 t_losses - t_teacher,
                 timer.elapsed().as_secs_f64() - t_losses

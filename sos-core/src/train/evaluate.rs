@@ -5,6 +5,7 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::error::RunError;
+use crate::metrics::ImageQualityReport;
 use crate::train::photometric::psnr_of_mse;
 use crate::train::session::Session;
 
@@ -66,4 +67,23 @@ pub fn evaluate_views(session: &Session, write_images: bool) -> Result<ImageEval
         views,
         render_rays_per_second: rays as f64 / elapsed,
     })
+}
+
+impl ImageEval {
+    /// The same summary from a report another pass already measured (mask inference renders
+    /// and measures the held-out colour too); `seconds` is that pass's time for `rays` rays.
+    pub fn from_report(report: &ImageQualityReport, rays: usize, seconds: f64) -> ImageEval {
+        let views: Vec<ViewQuality> = report
+            .views()
+            .iter()
+            .map(|v| ViewQuality { view: v.name.clone(), psnr: v.psnr, mse: v.mse, ssim: v.ssim })
+            .collect();
+        ImageEval {
+            psnr: report.psnr_of_mean_mse().unwrap_or(f64::NAN),
+            psnr_mean_per_view: report.mean_psnr().unwrap_or(f64::NAN),
+            ssim: report.mean_ssim().unwrap_or(f64::NAN),
+            views,
+            render_rays_per_second: rays as f64 / seconds.max(1e-9),
+        }
+    }
 }

@@ -1,12 +1,12 @@
-//! `sos train`: stage 1, evaluation of the held-out views, then (when `segment.steps > 0`)
-//! stage 2 and mask inference.
+//! `sos train`: stage 1, then (when `segment.steps > 0`) stage 2 and mask inference, which
+//! also measures the held-out colour; without stage 2, an evaluation of the held-out views.
 
 use std::path::Path;
 use std::time::Instant;
 
 use anyhow::Context;
 use sos_core::segment::train::Segmenter;
-use sos_core::train::evaluate::evaluate_views;
+use sos_core::train::evaluate::{evaluate_views, ImageEval};
 use sos_core::train::photometric::train_photometric;
 use sos_core::train::Session;
 
@@ -35,9 +35,6 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
     let stats = train_photometric(&mut session, progress)?;
     let train_seconds = started.elapsed().as_secs_f64();
     eprintln!("stage 1 done: {} steps, last batch PSNR {:.2} dB, {:.1} s", session.step, stats.psnr, train_seconds);
-    let eval_started = Instant::now();
-    let eval = evaluate_views(&session, session.config.render.test_views)?;
-    let eval_seconds = eval_started.elapsed().as_secs_f64();
     let metrics_path = session.run_dir.join("metrics.json");
     let mut report = serde_json::json!({
         "scene": session.scene.name,
@@ -46,11 +43,44 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
         "steps": session.step,
         "rays_per_step": session.config.train.rays_per_step,
         "train_seconds": train_seconds,
-        "timing": { "stage1_seconds": train_seconds, "stage1_eval_seconds": eval_seconds },
-        "test": eval,
+        "timing": { "stage1_seconds": train_seconds },
     });
-    // Written now so stage-1 results survive a failing stage 2.
+    match segmenter {
+        None => {
+            let eval_started = Instant::now();
+            let eval = evaluate_views(&session, session.config.render.test_views)?;
+            report["timing"]["stage1_eval_seconds"] = eval_started.elapsed().as_secs_f64().into();
+            print_image_eval(&eval, Some(&session));
+            report["test"] = serde_json::to_value(&eval)?;
+        }
+        Some(seg) => {
+            // Written now so stage-1 results survive a failing stage 2.
+            super::write_json(&metrics_path, &report).context("writing metrics")?;
+            let s2 = stage2::train(&mut session, seg, progress)?;
+            // Mask inference renders and measures the held-out colour as well, so the field's
+            // image quality comes from that pass instead of a second rendering of the views.
+            let masks = stage2::masks(&session, &s2.seg.head, Some(s2.seg.teacher.extractor()), true)?;
+            let rays = session.scene.test.iter().map(|&i| {
+                let c = &session.scene.views[i].camera;
+                c.width as usize * c.height as usize
+            }).sum();
+            let eval = ImageEval::from_report(&masks.image, rays, masks.seconds);
+            print_image_eval(&eval, None);
+            report["test"] = serde_json::to_value(&eval)?;
+            report["stage2"] = stage2::report(&session, s2.seg.step, Some(s2.seconds), Some(&s2.stats), &masks);
+            report["timing"]["stage2_seconds"] = s2.seconds.into();
+            report["timing"]["masks_seconds"] = masks.seconds.into();
+        }
+    }
+    report["timing"]["total_seconds"] = started.elapsed().as_secs_f64().into();
     super::write_json(&metrics_path, &report).context("writing metrics")?;
+    println!("metrics in {}", metrics_path.display());
+    Ok(())
+}
+
+/// The held-out quality line, and the render speed when `session` says the views were
+/// rendered for it alone.
+fn print_image_eval(eval: &ImageEval, session: Option<&Session>) {
     println!(
         "held-out PSNR {:.2} dB (mean of per-view {:.2} dB), SSIM {:.4}, over {} views",
         eval.psnr,
@@ -58,17 +88,7 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
         eval.ssim,
         eval.views.len()
     );
-    println!("render speed {:.0} rays/s; outputs in {}", eval.render_rays_per_second, session.run_dir.display());
-
-    if let Some(seg) = segmenter {
-        let s2 = stage2::train(&mut session, seg, progress)?;
-        let masks = stage2::masks(&session, &s2.seg.head, Some(s2.seg.teacher.extractor()), true)?;
-        report["stage2"] = stage2::report(&session, s2.seg.step, Some(s2.seconds), Some(&s2.stats), &masks);
-        report["timing"]["stage2_seconds"] = s2.seconds.into();
-        report["timing"]["masks_seconds"] = masks.seconds.into();
+    if let Some(session) = session {
+        println!("render speed {:.0} rays/s; outputs in {}", eval.render_rays_per_second, session.run_dir.display());
     }
-    report["timing"]["total_seconds"] = started.elapsed().as_secs_f64().into();
-    super::write_json(&metrics_path, &report).context("writing metrics")?;
-    println!("metrics in {}", metrics_path.display());
-    Ok(())
 }
