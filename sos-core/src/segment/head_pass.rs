@@ -42,22 +42,35 @@ impl HeadTapes {
     }
 
     fn fits(&self, field: &dyn RadianceField, head: &SegHead, samples: usize) -> bool {
-        let per_sample = field.seg_input_dim() + head.mlp.layers[..head.mlp.layers.len() - 1].iter().map(|l| l.out_dim).sum::<usize>();
+        let layers = &head.mlp.layers;
+        let hidden: usize = layers[..layers.len() - 1].iter().map(|l| l.out_dim).sum();
+        let per_sample = field.seg_input_dim() + hidden;
         samples.saturating_mul(per_sample * std::mem::size_of::<f32>()) <= self.budget
     }
 }
 
-/// Logits of every sample, `[n, outputs]`, without a tape.
-pub fn sample_logits(field: &dyn RadianceField, head: &SegHead, positions: &[Vec3]) -> Vec<f32> {
+/// Computes each chunk's segmentation input and gathers `run(chunk index, input, rows)`, the
+/// chunk's logits, into `[n, outputs]`.
+fn over_chunks(
+    field: &dyn RadianceField,
+    head: &SegHead,
+    positions: &[Vec3],
+    mut run: impl FnMut(usize, &[f32], usize) -> Vec<f32>,
+) -> Vec<f32> {
     let (dim, d) = (field.seg_input_dim(), head.outputs());
     let mut logits = vec![0.0f32; positions.len() * d];
     let mut input = vec![0.0f32; positions.len().min(CHUNK) * dim];
-    for (chunk, out) in positions.chunks(CHUNK).zip(logits.chunks_mut(CHUNK * d)) {
+    for (i, (chunk, out)) in positions.chunks(CHUNK).zip(logits.chunks_mut(CHUNK * d)).enumerate() {
         let x = &mut input[..chunk.len() * dim];
         field.seg_input(chunk, x);
-        out.copy_from_slice(&head.infer(x, chunk.len()));
+        out.copy_from_slice(&run(i, x, chunk.len()));
     }
     logits
+}
+
+/// Logits of every sample, `[n, outputs]`, without a tape.
+pub fn sample_logits(field: &dyn RadianceField, head: &SegHead, positions: &[Vec3]) -> Vec<f32> {
+    over_chunks(field, head, positions, |_, x, n| head.infer(x, n))
 }
 
 /// Logits of every sample, `[n, outputs]`, keeping the chunks' tapes in `tapes` when they fit
@@ -67,18 +80,14 @@ pub fn forward(field: &dyn RadianceField, head: &SegHead, positions: &[Vec3], ta
     if !tapes.fits(field, head, positions.len()) {
         return sample_logits(field, head, positions);
     }
-    let (dim, d) = (field.seg_input_dim(), head.outputs());
-    let mut logits = vec![0.0f32; positions.len() * d];
-    let mut input = vec![0.0f32; positions.len().min(CHUNK) * dim];
-    for (chunk, out) in positions.chunks(CHUNK).zip(logits.chunks_mut(CHUNK * d)) {
-        let x = &mut input[..chunk.len() * dim];
-        field.seg_input(chunk, x);
-        if tapes.used == tapes.tapes.len() {
-            tapes.tapes.push(MlpTape::default());
+    let kept = &mut tapes.tapes;
+    let logits = over_chunks(field, head, positions, |i, x, n| {
+        if i == kept.len() {
+            kept.push(MlpTape::default());
         }
-        out.copy_from_slice(&head.forward_into(x, chunk.len(), &mut tapes.tapes[tapes.used]));
-        tapes.used += 1;
-    }
+        head.forward_into(x, n, &mut kept[i])
+    });
+    tapes.used = positions.len().div_ceil(CHUNK);
     logits
 }
 

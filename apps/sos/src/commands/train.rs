@@ -60,10 +60,8 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
             // Mask inference renders and measures the held-out colour as well, so the field's
             // image quality comes from that pass instead of a second rendering of the views.
             let masks = stage2::masks(&session, &s2.seg.head, Some(s2.seg.teacher.extractor()), true)?;
-            let rays = session.scene.test.iter().map(|&i| {
-                let c = &session.scene.views[i].camera;
-                c.width as usize * c.height as usize
-            }).sum();
+            let camera = |i: usize| &session.scene.views[i].camera;
+            let rays = session.scene.test.iter().map(|&i| camera(i).width as usize * camera(i).height as usize).sum();
             let eval = ImageEval::from_report(&masks.image, rays, masks.seconds);
             print_image_eval(&eval, None);
             report["test"] = serde_json::to_value(&eval)?;
