@@ -36,7 +36,7 @@ impl Default for HeadTapes {
 }
 
 impl HeadTapes {
-    /// Tapes kept only while a batch's take at most `budget` bytes.
+    /// Tapes kept only while a batch's tapes take at most `budget` bytes.
     pub fn with_budget(budget: usize) -> Self {
         HeadTapes { tapes: Vec::new(), used: 0, budget }
     }
