@@ -10,8 +10,8 @@
 //! `sos` and `nerf_stage2` read.
 //!
 //! `cargo run --release -p sos-benchmarks --bin nerf_distill -- <voxel checkpoint> <out dir> [steps]`
-//! where the voxel checkpoint comes from the 160x120 object-centric synthetic scene (seed 0,
-//! 40 views), as in `configs/nerf_synthetic_small.toml`.
+//! where the voxel checkpoint comes from `configs/voxel_synthetic_small.toml` (the 160x120
+//! object-centric synthetic scene of `configs/nerf_synthetic_small.toml`).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;

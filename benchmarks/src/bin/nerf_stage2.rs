@@ -1,5 +1,6 @@
 //! Stage-2 steps of the `nerf` field (reference sizes) with and without skipping, from a
-//! stage-1 checkpoint of `configs/nerf_synthetic_small.toml`.
+//! stage-1 checkpoint of `configs/nerf_synthetic_small.toml` (the default) or one that
+//! `nerf_distill` made for the same scene.
 //!
 //! `cargo run --release -p sos-benchmarks --bin nerf_stage2 -- speed [checkpoint] [steps]`
 //! times real stage-2 steps (`train_segmentation`: render, head, teacher, losses, backward)

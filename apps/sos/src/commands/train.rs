@@ -50,7 +50,8 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
             let eval_started = Instant::now();
             let eval = evaluate_views(&session, session.config.render.test_views)?;
             report["timing"]["stage1_eval_seconds"] = eval_started.elapsed().as_secs_f64().into();
-            print_image_eval(&eval, Some(&session));
+            print_image_eval(&eval);
+            println!("render speed {:.0} rays/s; outputs in {}", eval.render_rays_per_second, session.run_dir.display());
             report["test"] = serde_json::to_value(&eval)?;
         }
         Some(seg) => {
@@ -63,7 +64,7 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
             let camera = |i: usize| &session.scene.views[i].camera;
             let rays = session.scene.test.iter().map(|&i| camera(i).width as usize * camera(i).height as usize).sum();
             let eval = ImageEval::from_report(&masks.image, rays, masks.seconds);
-            print_image_eval(&eval, None);
+            print_image_eval(&eval);
             report["test"] = serde_json::to_value(&eval)?;
             report["stage2"] = stage2::report(&session, s2.seg.step, Some(s2.seconds), Some(&s2.stats), &masks);
             report["timing"]["stage2_seconds"] = s2.seconds.into();
@@ -76,9 +77,8 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The held-out quality line, and the render speed when `session` says the views were
-/// rendered for it alone.
-fn print_image_eval(eval: &ImageEval, session: Option<&Session>) {
+/// The held-out quality line.
+fn print_image_eval(eval: &ImageEval) {
     println!(
         "held-out PSNR {:.2} dB (mean of per-view {:.2} dB), SSIM {:.4}, over {} views",
         eval.psnr,
@@ -86,7 +86,4 @@ fn print_image_eval(eval: &ImageEval, session: Option<&Session>) {
         eval.ssim,
         eval.views.len()
     );
-    if let Some(session) = session {
-        println!("render speed {:.0} rays/s; outputs in {}", eval.render_rays_per_second, session.run_dir.display());
-    }
 }
