@@ -31,6 +31,9 @@ const TILE: usize = 512;
 /// Rows per parallel task.
 const ROWS: usize = 16;
 
+/// Most parallel tasks the rows of one patch pair are split into.
+const MAX_TASKS: usize = 16;
+
 /// Settings of [`GeometryLoss`]; defaults are the reference LLFF run's (`0.5,1,3,1`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -360,18 +363,37 @@ fn pass2<const D: usize>(
     let mut loss = 0.0f64;
     for (k, sums) in row_sums.iter().enumerate() {
         let j = partner[k];
-        let view = PairView::<D> { pa: pts(k), pb: pts(j), sa: sl(k), sb: sl(j), kernel };
-        let row_shift: Vec<f32> = sums.iter().map(|&s| (global_mean - shift - s / m as f64) as f32).collect();
-        let acc = (0..m.div_ceil(ROWS))
+        let view = PairView::<D> {
+            pa: pts(k),
+            pb: pts(j),
+            sa: sl(k),
+            sb: sl(j),
+            kernel,
+        };
+        let row_shift: Vec<f32> = sums
+            .iter()
+            .map(|&s| (global_mean - shift - s / m as f64) as f32)
+            .collect();
+        // A fixed split of the rows into tasks, merged in order: the same sums every run.
+        let task_rows = ROWS.max(m.div_ceil(MAX_TASKS));
+        let acc = (0..m.div_ceil(task_rows))
             .into_par_iter()
-            .fold(
-                || PairAcc::new(D, m),
-                |mut acc, chunk| {
-                    pair_rows(&view, chunk * ROWS..((chunk + 1) * ROWS).min(m), &row_shift, &mut acc);
-                    acc
-                },
-            )
-            .reduce(|| PairAcc::new(D, m), PairAcc::merge);
+            .map(|task| {
+                let mut acc = PairAcc::new(D, m);
+                let rows = task * task_rows..((task + 1) * task_rows).min(m);
+                for start in rows.clone().step_by(ROWS) {
+                    pair_rows(
+                        &view,
+                        start..(start + ROWS).min(rows.end),
+                        &row_shift,
+                        &mut acc,
+                    );
+                }
+                acc
+            })
+            .collect::<Vec<_>>()
+            .into_iter()
+            .fold(PairAcc::new(D, m), PairAcc::merge);
         loss += acc.loss;
         // Only the first d (real) channels carry gradient.
         for (g, a) in grad_hat[k * d * m..(k + 1) * d * m].iter_mut().zip(&acc.ga) {

@@ -16,13 +16,19 @@
 //!   threshold) with ONE patch, as the reference's 41 s figure is for one patch (eight would
 //!   need about 9 GB for the head's inputs alone).
 //!
-//! `... nerf_stage2 -- quality [checkpoint] [steps]` trains stage 2 on the small scene (4
-//! patches of 24x24 rays) with every skip and without any, for two seeds, and evaluates the
-//! masks of the held-out views under the training run's settings; the head trained with
-//! skipping is also evaluated without skipping (skipping at inference alone).
+//! - `weight-threshold-only`, `uniform-no-skipping`, `uniform-weight-threshold-only` (one
+//!   patch): the reference pipeline with weight thresholding alone, and the fine network alone
+//!   on 192 uniform candidates without skipping and with weight thresholding alone.
+//! `NERF_STAGE2_MODES=a,b` picks modes by name.
 //!
-//! `... nerf_stage2 -- head [checkpoint] [repeats]` times the head phase alone (segmentation
-//! input, head forward and backward) on the samples one 64x64 patch keeps in each mode;
+//! `... nerf_stage2 -- quality [checkpoint] [steps]` trains stage 2 on the small scene (4
+//! patches of 24x24 rays) in each mode (`NERF_STAGE2_MODES`, default every skip and none) for
+//! each seed (`NERF_STAGE2_SEEDS`, default `0,1`), evaluates the masks of the held-out views
+//! under the training run's settings, and prints each mode's mIoU minus the first mode's.
+//!
+//! `... nerf_stage2 -- head [checkpoint] [repeats]` times the render and the head phase (head
+//! forward and backward) of one 64x64 patch apart in each mode; `... -- weights [checkpoint]`
+//! shows how the compositing weight is spread over each ray's samples;
 //! `... -- density [checkpoint]` prints quantiles of the frozen density.
 //!
 //! Wall time depends on what else runs on the machine; each line also gives the process's CPU
@@ -139,29 +145,41 @@ fn open(mode: &Mode, steps: usize, checkpoint: &Path) -> Session {
 }
 
 fn speed(checkpoint: &Path, steps: usize) {
-    let modes = [
-        ALL_SKIPS,
-        Mode { name: "no-weight-threshold", weight_threshold: 0.0, ..ALL_SKIPS },
-        Mode { name: "no-early-termination", early_stop: 0.0, ..ALL_SKIPS },
-        Mode { name: "no-occupancy", occupancy: false, ..ALL_SKIPS },
-        Mode { name: "all-skips-hierarchical", hierarchical: true, ..ALL_SKIPS },
-        Mode {
-            name: "no-skipping",
-            hierarchical: true,
-            occupancy: false,
-            early_stop: 0.0,
-            weight_threshold: 0.0,
-            patches: 1,
-            ..ALL_SKIPS
-        },
+    // The reference pipeline without skipping runs ONE patch, as the reference's 41 s figure
+    // is for one patch (eight would need about 9 GB for the head's inputs alone); so does
+    // uniform sampling without skipping, for the same reason.
+    let one_patch = [
+        "no-skipping",
+        "weight-threshold-only",
+        "uniform-no-skipping",
+        "uniform-weight-threshold-only",
     ];
-    println!("nerf_stage2 speed: checkpoint {}, {steps} timed step(s) per mode after 1 warm-up", checkpoint.display());
-    println!("| mode | patches | rays | s/step (wall) | CPU s/step | head samples/ray | load avg |");
+    let modes: Vec<Mode> = selected_modes(&[
+        "all-skips",
+        "no-weight-threshold",
+        "no-early-termination",
+        "no-occupancy",
+        "all-skips-hierarchical",
+        "no-skipping",
+    ])
+    .into_iter()
+    .map(|m| {
+        if one_patch.contains(&m.name) {
+            Mode { patches: 1, ..m }
+        } else {
+            m
+        }
+    })
+    .collect();
+    println!(
+        "nerf_stage2 speed: checkpoint {}, {steps} timed step(s) per mode after 1 warm-up",
+        checkpoint.display()
+    );
+    println!(
+        "| mode | patches | rays | s/step (wall) | CPU s/step | head samples/ray | load avg |"
+    );
     println!("|---|---|---|---|---|---|---|");
-    // `NERF_STAGE2_MODES=all-skips,no-skipping` restricts the run to those modes.
-    let only: Option<Vec<String>> =
-        std::env::var("NERF_STAGE2_MODES").ok().map(|v| v.split(',').map(str::to_owned).collect());
-    for mode in modes.iter().filter(|m| only.as_ref().map_or(true, |o| o.iter().any(|n| n == m.name))) {
+    for mode in &modes {
         let mut session = open(mode, 1, checkpoint);
         let mut seg = Segmenter::build(&session).expect("stage 2 builds");
         session.config.segment.steps = 1;
@@ -190,51 +208,142 @@ fn speed(checkpoint: &Path, steps: usize) {
     }
 }
 
+/// Every named mode (8 patches of 64x64; `quality` shrinks the batch).
+fn catalogue() -> Vec<Mode> {
+    let no_skip = Mode {
+        name: "no-skipping",
+        hierarchical: true,
+        occupancy: false,
+        early_stop: 0.0,
+        weight_threshold: 0.0,
+        ..ALL_SKIPS
+    };
+    vec![
+        ALL_SKIPS,
+        Mode {
+            name: "no-weight-threshold",
+            weight_threshold: 0.0,
+            ..ALL_SKIPS
+        },
+        Mode {
+            name: "no-early-termination",
+            early_stop: 0.0,
+            ..ALL_SKIPS
+        },
+        Mode {
+            name: "no-occupancy",
+            occupancy: false,
+            ..ALL_SKIPS
+        },
+        Mode {
+            name: "all-skips-hierarchical",
+            hierarchical: true,
+            ..ALL_SKIPS
+        },
+        no_skip,
+        Mode {
+            name: "weight-threshold-only",
+            weight_threshold: 1e-3,
+            ..no_skip
+        },
+        Mode {
+            name: "uniform-no-skipping",
+            hierarchical: false,
+            ..no_skip
+        },
+        Mode {
+            name: "uniform-weight-threshold-only",
+            hierarchical: false,
+            weight_threshold: 1e-3,
+            ..no_skip
+        },
+    ]
+}
+
+/// The modes named in `NERF_STAGE2_MODES` (comma-separated), in that order, or `default`.
+fn selected_modes(default: &[&str]) -> Vec<Mode> {
+    let names: Vec<String> = match std::env::var("NERF_STAGE2_MODES") {
+        Ok(v) => v.split(',').map(str::to_owned).collect(),
+        Err(_) => default.iter().map(|s| s.to_string()).collect(),
+    };
+    let all = catalogue();
+    names
+        .iter()
+        .map(|n| {
+            *all.iter().find(|m| m.name == n).unwrap_or_else(|| {
+                let known: Vec<&str> = all.iter().map(|m| m.name).collect();
+                eprintln!(
+                    "unknown mode `{n}` in NERF_STAGE2_MODES; known: {}",
+                    known.join(", ")
+                );
+                std::process::exit(2);
+            })
+        })
+        .collect()
+}
+
+/// Trains stage 2 on the small scene (4 patches of 24x24) in each mode for each seed and
+/// evaluates the held-out masks under the training mode's settings. The modes come from
+/// `NERF_STAGE2_MODES` (default: `all-skips,no-skipping`), the seeds from `NERF_STAGE2_SEEDS`
+/// (default `0,1`); the last table gives each mode's mIoU minus the first mode's, seed by seed.
 fn quality(checkpoint: &Path, steps: usize) {
-    let small = |m: Mode| Mode { patches: 4, patch_size: 24, ..m };
-    let skips = small(ALL_SKIPS);
-    let none = small(Mode { name: "no-skipping", hierarchical: true, occupancy: false, early_stop: 0.0, weight_threshold: 0.0, ..ALL_SKIPS });
+    let modes: Vec<Mode> = selected_modes(&["all-skips", "no-skipping"])
+        .into_iter()
+        .map(|m| Mode {
+            patches: 4,
+            patch_size: 24,
+            ..m
+        })
+        .collect();
+    let seeds: Vec<u64> = std::env::var("NERF_STAGE2_SEEDS")
+        .ok()
+        .map(|v| v.split(',').filter_map(|s| s.trim().parse().ok()).collect())
+        .unwrap_or_else(|| vec![0, 1]);
     println!(
         "nerf_stage2 quality: checkpoint {}, {steps} stage-2 steps of 4 patches of 24x24 rays per run",
         checkpoint.display()
     );
-    println!("| seed | head trained with | masks rendered with | train s | masks s | ARI | IoU BG | IoU FG | mIoU | PSNR |");
-    println!("|---|---|---|---|---|---|---|---|---|---|");
+    println!("| seed | mode | train s | masks s | ARI | IoU BG | IoU FG | mIoU | PSNR |");
+    println!("|---|---|---|---|---|---|---|---|---|");
     let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.4}"));
-    for seed in [0u64, 1] {
-        for mode in [skips, none] {
-            let mut session = open(&mode, steps, checkpoint);
+    let mut miou = vec![vec![f64::NAN; modes.len()]; seeds.len()];
+    for (si, &seed) in seeds.iter().enumerate() {
+        for (mi, mode) in modes.iter().enumerate() {
+            let mut session = open(mode, steps, checkpoint);
             session.config.seed = seed;
             let mut seg = Segmenter::build(&session).expect("stage 2 builds");
             let t = Instant::now();
             train_segmentation(&mut session, &mut seg, false).expect("stage 2 trains");
             let train_s = t.elapsed().as_secs_f64();
-            // Masks under the training mode, and (for the skipping run) also without skipping,
-            // to separate the effect of skipping at inference from training noise.
-            let mut renders = vec![(mode.name, &session)];
-            let other;
-            if mode.name == skips.name {
-                other = open(&none, steps, checkpoint);
-                renders.push((none.name, &other));
-            }
-            for (render_name, s) in renders {
-                let inference = MaskInference::new(s, &seg.head, Some(seg.teacher.extractor())).expect("inference");
-                let eval = evaluate_masks(s, &inference, false).expect("masks");
-                let iou = eval.segmentation.iou();
-                println!(
-                    "| {seed} | {} | {} | {:.0} | {:.0} | {} | {} | {} | {} | {} |",
-                    mode.name,
-                    render_name,
-                    train_s,
-                    eval.seconds,
-                    f(eval.segmentation.mean_ari()),
-                    f(iou.iou_bg),
-                    f(iou.iou_fg),
-                    f(iou.miou),
-                    eval.image.mean_psnr().map_or("-".into(), |p| format!("{p:.2}"))
-                );
-            }
+            let inference = MaskInference::new(&session, &seg.head, Some(seg.teacher.extractor()))
+                .expect("inference");
+            let eval = evaluate_masks(&session, &inference, false).expect("masks");
+            let iou = eval.segmentation.iou();
+            miou[si][mi] = iou.miou.unwrap_or(f64::NAN);
+            println!(
+                "| {seed} | {} | {:.0} | {:.0} | {} | {} | {} | {} | {} |",
+                mode.name,
+                train_s,
+                eval.seconds,
+                f(eval.segmentation.mean_ari()),
+                f(iou.iou_bg),
+                f(iou.iou_fg),
+                f(iou.miou),
+                eval.image
+                    .mean_psnr()
+                    .map_or("-".into(), |p| format!("{p:.2}"))
+            );
         }
+    }
+    println!(
+        "\nmIoU minus `{}`'s, seed by seed, then the mean:",
+        modes[0].name
+    );
+    for (mi, mode) in modes.iter().enumerate().skip(1) {
+        let diffs: Vec<f64> = miou.iter().map(|row| row[mi] - row[0]).collect();
+        let mean = diffs.iter().sum::<f64>() / diffs.len().max(1) as f64;
+        let listed: Vec<String> = diffs.iter().map(|d| format!("{d:+.4}")).collect();
+        println!("  {}: {} | mean {mean:+.4}", mode.name, listed.join(" "));
     }
 }
 
@@ -274,26 +383,32 @@ fn inference_skips(checkpoint: &Path, steps: usize) {
     }
 }
 
-/// The head phase of a stage-2 step on its own: segmentation input, head forward and head
-/// backward (what weight thresholding decides the size of), on the samples that survive the
-/// render of one 64x64 patch in each mode. Returns (seconds, samples per ray).
+/// The render and head phase of a stage-2 step on one 64x64 patch in each mode, timed apart:
+/// the frozen render (which keeps the segmentation input at its samples), the head's forward
+/// and backward on them (what weight thresholding decides the size of), and, for comparison,
+/// the segmentation input computed again (what the head phase cost before the render kept it).
 fn head_phase(checkpoint: &Path, repeats: usize) {
     use rand::{Rng, SeedableRng};
     use sos_core::config::HeadConfig;
     use sos_core::render::rays::PatchGrid;
-    use sos_core::render::renderer::render;
+    use sos_core::render::renderer::render_with_seg_input;
     use sos_core::segment::head::SegHead;
     use sos_core::segment::patches::{patch_rays, Patch};
-    let no_skip = Mode { name: "no-skipping", hierarchical: true, occupancy: false, early_stop: 0.0, weight_threshold: 0.0, ..ALL_SKIPS };
-    let modes = [
-        no_skip,
-        Mode { name: "weight-threshold-only", weight_threshold: 1e-3, ..no_skip },
-        Mode { name: "all-skips-without-weight-threshold", weight_threshold: 0.0, ..ALL_SKIPS },
-        ALL_SKIPS,
-    ];
-    println!("nerf_stage2 head phase: one 64x64 patch (4096 rays), segmentation input + head forward + backward, median of {repeats}");
-    println!("| mode | head samples/ray | head phase s | load avg |");
-    println!("|---|---|---|---|");
+    let modes = selected_modes(&[
+        "no-skipping",
+        "weight-threshold-only",
+        "uniform-no-skipping",
+        "uniform-weight-threshold-only",
+        "no-weight-threshold",
+        "all-skips",
+    ]);
+    println!("nerf_stage2 head phase: one 64x64 patch (4096 rays), median of {repeats}");
+    println!("| mode | head samples/ray | render s | head forward + backward s | segmentation input again s | load avg |");
+    println!("|---|---|---|---|---|---|");
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
     for mode in &modes {
         let session = open(mode, 1, checkpoint);
         let view = session.scene.train[0];
@@ -301,24 +416,46 @@ fn head_phase(checkpoint: &Path, repeats: usize) {
         let rays = patch_rays(&session.scene, &[Patch { view, grid }]);
         let mut options = session.render_options(false);
         options.min_weight = mode.weight_threshold;
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-        let mut r = render(session.field.as_ref(), session.render_context(), &rays, options, false, &mut rng);
-        r.composite();
-        let n = r.samples.len();
         let dim = session.field.seg_input_dim();
         let mut head = SegHead::new(&HeadConfig::default(), dim, 1e-3, 0);
-        let grads: Vec<f32> = (0..n * head.outputs()).map(|_| rng.gen_range(-1e-3..1e-3)).collect();
-        let mut times = Vec::new();
+        let (mut render_s, mut head_s, mut again_s) = (Vec::new(), Vec::new(), Vec::new());
+        let mut per_ray = 0.0;
         for _ in 0..repeats {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+            let t = Instant::now();
+            let mut r = render_with_seg_input(
+                session.field.as_ref(),
+                session.render_context(),
+                &rays,
+                options,
+                usize::MAX,
+                &mut rng,
+            );
+            r.composite();
+            render_s.push(t.elapsed().as_secs_f64());
+            let n = r.samples.len();
+            per_ray = n as f64 / rays.len() as f64;
+            let grads: Vec<f32> = (0..n * head.outputs())
+                .map(|_| rng.gen_range(-1e-3..1e-3))
+                .collect();
+            let t = Instant::now();
+            let (_, tape) = head.forward(&r.seg_input, n);
+            head.backward(&tape, &grads);
+            head_s.push(t.elapsed().as_secs_f64());
             let t = Instant::now();
             let mut input = vec![0.0; n * dim];
             session.field.seg_input(&r.samples.positions, &mut input);
-            let (_, tape) = head.forward(&input, n);
-            head.backward(&tape, &grads);
-            times.push(t.elapsed().as_secs_f64());
+            again_s.push(t.elapsed().as_secs_f64());
         }
-        times.sort_by(f64::total_cmp);
-        println!("| {} | {:.1} | {:.3} | {} |", mode.name, n as f64 / rays.len() as f64, times[times.len() / 2], load_average());
+        println!(
+            "| {} | {:.1} | {:.3} | {:.3} | {:.3} | {} |",
+            mode.name,
+            per_ray,
+            median(render_s),
+            median(head_s),
+            median(again_s),
+            load_average()
+        );
     }
 }
 
@@ -349,6 +486,94 @@ fn density_stats(checkpoint: &Path) {
     }
 }
 
+/// How the compositing weight of one 64x64 patch's rays is spread over their samples, in the
+/// reference pipeline (coarse + fine, no other skip): samples per ray above absolute and
+/// relative thresholds, and the fewest samples that carry a given share of each ray's weight.
+fn weight_spread(checkpoint: &Path) {
+    use rand::SeedableRng;
+    use sos_core::render::rays::PatchGrid;
+    use sos_core::render::renderer::render;
+    use sos_core::segment::patches::{patch_rays, Patch};
+    let mode = Mode {
+        name: "weights",
+        hierarchical: true,
+        occupancy: false,
+        early_stop: 0.0,
+        weight_threshold: 0.0,
+        ..ALL_SKIPS
+    };
+    let session = open(&mode, 1, checkpoint);
+    let view = session.scene.train[0];
+    let grid = PatchGrid {
+        col0: 40,
+        row0: 28,
+        size: 64,
+        stride: 1,
+    };
+    let rays = patch_rays(&session.scene, &[Patch { view, grid }]);
+    let options = session.render_options(false);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+    let mut r = render(
+        session.field.as_ref(),
+        session.render_context(),
+        &rays,
+        options,
+        false,
+        &mut rng,
+    );
+    r.composite();
+    let n_rays = rays.len() as f64;
+    let mut counts = [0.0f64; 9];
+    let mut opaque = 0.0;
+    for ray in 0..rays.len() {
+        let mut w: Vec<f32> = r.samples.range(ray).map(|k| r.weights[k]).collect();
+        w.sort_by(|a, b| b.total_cmp(a));
+        let total: f32 = w.iter().sum();
+        opaque += total as f64;
+        let peak = w.first().copied().unwrap_or(0.0);
+        let above = |t: f32| w.iter().filter(|&&x| x > t).count() as f64;
+        let share = |f: f32| {
+            let mut acc = 0.0;
+            w.iter()
+                .take_while(|&&x| {
+                    let before = acc;
+                    acc += x;
+                    before < f * total
+                })
+                .count() as f64
+        };
+        let row = [
+            w.len() as f64,
+            above(1e-3),
+            above(1e-2),
+            above(1e-2 * peak),
+            above(1e-1 * peak),
+            share(0.9),
+            share(0.99),
+            share(0.999),
+            share(0.9999),
+        ];
+        for (c, v) in counts.iter_mut().zip(row) {
+            *c += v;
+        }
+    }
+    println!("nerf_stage2 weights: one 64x64 patch, coarse + fine, no skipping; mean per ray (opacity {:.3})", opaque / n_rays);
+    let names = [
+        "samples",
+        "w > 1e-3",
+        "w > 1e-2",
+        "w > 1% of peak",
+        "w > 10% of peak",
+        "90% of weight",
+        "99%",
+        "99.9%",
+        "99.99%",
+    ];
+    for (name, c) in names.iter().zip(counts) {
+        println!("  {name:>16}: {:.1}", c / n_rays);
+    }
+}
+
 fn main() {
     sos_benchmarks::allocate_like_sos();
     let args: Vec<String> = std::env::args().collect();
@@ -364,6 +589,7 @@ fn main() {
         "density" => density_stats(&checkpoint),
         "head" => head_phase(&checkpoint, steps.unwrap_or(3)),
         "inference" => inference_skips(&checkpoint, steps.unwrap_or(60)),
+        "weights" => weight_spread(&checkpoint),
         other => {
             eprintln!("unknown mode `{other}`: use `speed` or `quality`");
             std::process::exit(2);

@@ -105,6 +105,17 @@ impl<L: Level> RadianceField for CoarseFine<L> {
         self.fine.seg_input(positions, out);
     }
 
+    fn forward_with_seg_input(
+        &self,
+        p: &[Vec3],
+        d: &[Vec3],
+        density: &mut [f32],
+        rgb: &mut [[f32; 3]],
+        seg: &mut [f32],
+    ) {
+        self.fine.forward_with_seg_input(p, d, density, rgb, seg);
+    }
+
     fn save_state(&self) -> Vec<u8> {
         let nets: Vec<&NerfMlp> = self.fine.mlps().into_iter().chain(self.coarse.mlps()).collect();
         write_params(&nets)

@@ -114,6 +114,23 @@ impl RadianceField for NerfNet {
         self.mlp.features(&self.coords(positions), out);
     }
 
+    fn forward_with_seg_input(
+        &self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        density: &mut [f32],
+        rgb: &mut [[f32; 3]],
+        seg_input: &mut [f32],
+    ) {
+        self.mlp.forward_with_features(
+            &self.coords(positions),
+            directions,
+            density,
+            rgb,
+            seg_input,
+        );
+    }
+
     fn save_state(&self) -> Vec<u8> {
         write_params(&[&self.mlp])
     }

@@ -167,6 +167,17 @@ fn encode_dirs(dirs: &[Vec3], frequencies: usize) -> Vec<f32> {
     encode(&flat, 3, frequencies)
 }
 
+/// Rows `[h_i, pe_i]` of the segmentation input from trunk activations `[n, w]` and encoded
+/// positions `[n, pe_dim]`.
+fn join_rows(h: &[f32], w: usize, pe: &[f32], pe_dim: usize, out: &mut [f32]) {
+    out.par_chunks_mut(w + pe_dim)
+        .enumerate()
+        .for_each(|(i, r)| {
+            r[..w].copy_from_slice(&h[i * w..(i + 1) * w]);
+            r[w..].copy_from_slice(&pe[i * pe_dim..(i + 1) * pe_dim]);
+        });
+}
+
 fn relu_in_place(x: &mut [f32]) {
     x.par_chunks_mut(1 << 14).for_each(|c| c.iter_mut().for_each(|v| *v = v.max(0.0)));
 }
@@ -258,10 +269,7 @@ impl NerfMlp {
             let n = x.len() / d;
             let pe = encode(x, d, self.pos_frequencies);
             let h = self.trunk_block(&pe, n);
-            o.par_chunks_mut(row).enumerate().for_each(|(i, r)| {
-                r[..w].copy_from_slice(&h[i * w..(i + 1) * w]);
-                r[w..].copy_from_slice(&pe[i * pe_dim..(i + 1) * pe_dim]);
-            });
+            join_rows(&h, w, &pe, pe_dim, o);
         }
     }
 
@@ -274,13 +282,40 @@ impl NerfMlp {
         rgb: &mut [[f32; 3]],
         record: bool,
     ) -> Option<NerfTape> {
+        self.forward_impl(coords, dirs, density, rgb, record, None)
+    }
+
+    /// Density, colour and the segmentation input of [`NerfMlp::features`] from one trunk
+    /// pass, without a tape.
+    pub fn forward_with_features(
+        &self,
+        coords: &[f32],
+        dirs: &[Vec3],
+        density: &mut [f32],
+        rgb: &mut [[f32; 3]],
+        features: &mut [f32],
+    ) {
+        self.forward_impl(coords, dirs, density, rgb, false, Some(features));
+    }
+
+    fn forward_impl(
+        &self,
+        coords: &[f32],
+        dirs: &[Vec3],
+        density: &mut [f32],
+        rgb: &mut [[f32; 3]],
+        record: bool,
+        mut features: Option<&mut [f32]>,
+    ) -> Option<NerfTape> {
         let d = self.in_dim;
+        let (w, pe_dim) = (self.width(), self.pe_dim());
         let mut blocks = Vec::new();
-        for (((x, dir), dens), col) in coords
+        for (block, (((x, dir), dens), col)) in coords
             .chunks(CHUNK * d)
             .zip(dirs.chunks(CHUNK))
             .zip(density.chunks_mut(CHUNK))
             .zip(rgb.chunks_mut(CHUNK))
+            .enumerate()
         {
             let n = dens.len();
             let pe = encode(x, d, self.pos_frequencies);
@@ -292,6 +327,11 @@ impl NerfMlp {
                 (self.trunk.infer(&pe, n), None)
             };
             relu_in_place(&mut h);
+            if let Some(out) = features.as_deref_mut() {
+                let row = w + pe_dim;
+                let out = &mut out[block * CHUNK * row..][..n * row];
+                join_rows(&h, w, &pe, pe_dim, out);
+            }
             let mut sigma_raw = vec![0.0; n];
             self.sigma.forward(&h, n, &mut sigma_raw);
             let w = self.width();
@@ -469,6 +509,12 @@ mod tests {
         let row = 8 + shape.pe_dim();
         assert!((f[row * (n - 1) + 8] - coords[3 * (n - 1)]).abs() < 1e-7, "PE starts with x");
         assert!(f.iter().all(|v| v.is_finite()));
+        // One fused pass gives the same density, colour and segmentation input.
+        let (mut d3, mut c3, mut f3) = (vec![0.0; n], vec![[0.0; 3]; n], vec![f32::NAN; f.len()]);
+        m.forward_with_features(&coords, &dirs, &mut d3, &mut c3, &mut f3);
+        let (mut d4, mut c4) = (vec![0.0; n], vec![[0.0; 3]; n]);
+        assert!(m.forward(&coords, &dirs, &mut d4, &mut c4, false).is_none());
+        assert_eq!((d3, c3, f3), (d4, c4, f));
     }
 
     #[test]

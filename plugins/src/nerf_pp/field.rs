@@ -151,6 +151,34 @@ impl Level for NerfPpNet {
     }
 }
 
+impl NerfPpNet {
+    /// Writes the trunk part of `net`'s segmentation input rows `features` (one per sample of
+    /// `idx`) into those samples' rows of `out` `[n, seg_input_dim]`.
+    fn scatter_features(&self, net: &NerfMlp, idx: &[u32], features: &[f32], out: &mut [f32]) {
+        let (w, dim) = (self.fg.width(), self.seg_input_dim());
+        let row = net.width() + net.pe_dim();
+        for (j, &i) in idx.iter().enumerate() {
+            out[i as usize * dim..i as usize * dim + w]
+                .copy_from_slice(&features[j * row..j * row + w]);
+        }
+    }
+
+    /// Writes the encoded contracted position after the trunk part of each row of `out`.
+    fn encode_positions(&self, positions: &[Vec3], out: &mut [f32]) {
+        let (w, dim) = (self.fg.width(), self.seg_input_dim());
+        for (i, p) in positions.iter().enumerate() {
+            let contracted = match self.space.route(*p) {
+                Route::Fg(_, _, c) | Route::Bg(_, _, c) | Route::Empty(c) => c,
+            };
+            positional_encoding(
+                &contracted,
+                self.fg.pos_frequencies,
+                &mut out[i * dim + w..(i + 1) * dim],
+            );
+        }
+    }
+}
+
 impl RadianceField for NerfPpNet {
     fn density(&self, positions: &[Vec3], density: &mut [f32]) {
         density.fill(0.0);
@@ -247,24 +275,39 @@ impl RadianceField for NerfPpNet {
     }
 
     fn seg_input(&self, positions: &[Vec3], out: &mut [f32]) {
-        let w = self.fg.width();
-        let dim = self.seg_input_dim();
         let s = self.split(positions);
         out.fill(0.0);
         for (net, idx, coords, _) in self.parts(&s) {
-            let row = net.width() + net.pe_dim();
-            let mut f = vec![0.0; idx.len() * row];
+            let mut f = vec![0.0; idx.len() * (net.width() + net.pe_dim())];
             net.features(coords, &mut f);
+            self.scatter_features(net, idx, &f, out);
+        }
+        self.encode_positions(positions, out);
+    }
+
+    fn forward_with_seg_input(
+        &self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        density: &mut [f32],
+        rgb: &mut [[f32; 3]],
+        seg_input: &mut [f32],
+    ) {
+        density.fill(0.0);
+        rgb.fill([0.0; 3]);
+        seg_input.fill(0.0);
+        let s = self.split(positions);
+        for (net, idx, coords, scale) in self.parts(&s) {
+            let (mut d, mut c) = (vec![0.0; idx.len()], vec![[0.0; 3]; idx.len()]);
+            let mut f = vec![0.0; idx.len() * (net.width() + net.pe_dim())];
+            net.forward_with_features(coords, &gather(directions, idx), &mut d, &mut c, &mut f);
             for (j, &i) in idx.iter().enumerate() {
-                out[i as usize * dim..i as usize * dim + w].copy_from_slice(&f[j * row..j * row + w]);
+                density[i as usize] = d[j] * scale[j];
+                rgb[i as usize] = c[j];
             }
+            self.scatter_features(net, idx, &f, seg_input);
         }
-        for (i, p) in positions.iter().enumerate() {
-            let contracted = match self.space.route(*p) {
-                Route::Fg(_, _, c) | Route::Bg(_, _, c) | Route::Empty(c) => c,
-            };
-            positional_encoding(&contracted, self.fg.pos_frequencies, &mut out[i * dim + w..(i + 1) * dim]);
-        }
+        self.encode_positions(positions, seg_input);
     }
 
     fn save_state(&self) -> Vec<u8> {
@@ -399,5 +442,37 @@ mod tests {
         assert!(seg.iter().all(|v| v.is_finite()));
         // Contracted x of the far point is (2 − 1/r) ≈ 1.93 along +x.
         assert!((seg[23 + 8] - (2.0 - 2.0 / 29.0)).abs() < 1e-5);
+    }
+
+    /// One fused pass gives what `forward` and `seg_input` give, in both networks and outside.
+    #[test]
+    fn fused_forward_matches_the_separate_passes() {
+        let f = NerfPpNet::new(&tiny(), sphere_space(false), 3);
+        let g = NerfPpNet::new(&tiny(), sphere_space(true), 3);
+        let positions = vec![
+            [1.5, 0.3, -0.4],
+            [1.0, 6.0, 2.0],
+            [0.2, -0.9, 0.7],
+            [-9.0, 1.0, 3.0],
+        ];
+        let dirs = vec![
+            [0.0, 0.6, 0.8],
+            [0.0, 1.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [-0.6, 0.0, 0.8],
+        ];
+        for net in [&f, &g] {
+            let dim = net.seg_input_dim();
+            let (mut d, mut c, mut seg) = (vec![0.0; 4], vec![[0.0; 3]; 4], vec![0.0; 4 * dim]);
+            net.forward(&positions, &dirs, &mut d, &mut c, false);
+            net.seg_input(&positions, &mut seg);
+            let (mut d2, mut c2, mut seg2) = (
+                vec![f32::NAN; 4],
+                vec![[f32::NAN; 3]; 4],
+                vec![f32::NAN; 4 * dim],
+            );
+            net.forward_with_seg_input(&positions, &dirs, &mut d2, &mut c2, &mut seg2);
+            assert_eq!((d2, c2, seg2), (d, c, seg));
+        }
     }
 }

@@ -49,6 +49,26 @@ fn rows_per_task(cols: usize) -> usize {
     (PAR_CHUNK_LEN / cols.max(1)).max(1)
 }
 
+/// Most tasks a parallel column sum is split into.
+const MAX_SUM_TASKS: usize = 64;
+
+/// Rows per task of a parallel column sum over `len` values in rows of `cols`. The split
+/// depends on the shape alone (not on threads or scheduling), and the partial sums are added
+/// in task order, so a run's gradients are the same every time, bit for bit.
+fn sum_task_rows(len: usize, cols: usize) -> usize {
+    let rows = len / cols.max(1);
+    rows_per_task(cols).max(rows.div_ceil(MAX_SUM_TASKS))
+}
+
+/// `total += Σ partials`, the partials added together first, in order.
+fn add_in_order(partials: &[Vec<f32>], total: &mut [f32]) {
+    let mut sum = vec![0.0f32; total.len()];
+    for p in partials {
+        sum.iter_mut().zip(p).for_each(|(s, v)| *s += v);
+    }
+    total.iter_mut().zip(&sum).for_each(|(t, s)| *t += s);
+}
+
 /// `y[r][j] = f(y[r][j] + bias[j])` over a row-major matrix (bias may be empty: no add).
 fn forward_rows<F: Fn(f32) -> f32 + Sync>(y: &mut [f32], bias: &[f32], f: F) {
     let body = |chunk: &mut [f32]| {
@@ -89,26 +109,18 @@ fn backward_rows<D: Fn(f32) -> f32 + Sync>(
         }
     };
     if grad.len() >= PAR_MIN_LEN {
-        let chunk = rows_per_task(cols) * cols.max(1);
-        // Per-task partial column sums, reduced at the end: one pass over `grad`.
-        let partial = grad
+        let chunk = sum_task_rows(grad.len(), cols) * cols.max(1);
+        // Per-task partial column sums, added in task order: one pass over `grad`.
+        let partials: Vec<Vec<f32>> = grad
             .par_chunks_mut(chunk)
             .zip(out.par_chunks(chunk))
-            .fold(
-                || vec![0.0f32; cols],
-                |mut acc, (g, o)| {
-                    body(o, g, &mut acc);
-                    acc
-                },
-            )
-            .reduce(
-                || vec![0.0f32; cols],
-                |mut a, b| {
-                    a.iter_mut().zip(&b).for_each(|(a, b)| *a += b);
-                    a
-                },
-            );
-        col_sum.iter_mut().zip(&partial).for_each(|(s, p)| *s += p);
+            .map(|(g, o)| {
+                let mut acc = vec![0.0f32; cols];
+                body(o, g, &mut acc);
+                acc
+            })
+            .collect();
+        add_in_order(&partials, col_sum);
     } else {
         body(out, grad, col_sum);
     }
@@ -132,23 +144,15 @@ pub fn add_column_sums(g: &[f32], col_sum: &mut [f32]) {
         }
     };
     if g.len() >= PAR_MIN_LEN {
-        let partial = g
-            .par_chunks(rows_per_task(cols) * cols)
-            .fold(
-                || vec![0.0f32; cols],
-                |mut acc, g| {
-                    body(g, &mut acc);
-                    acc
-                },
-            )
-            .reduce(
-                || vec![0.0f32; cols],
-                |mut a, b| {
-                    a.iter_mut().zip(&b).for_each(|(a, b)| *a += b);
-                    a
-                },
-            );
-        col_sum.iter_mut().zip(&partial).for_each(|(s, p)| *s += p);
+        let partials: Vec<Vec<f32>> = g
+            .par_chunks(sum_task_rows(g.len(), cols) * cols)
+            .map(|g| {
+                let mut acc = vec![0.0f32; cols];
+                body(g, &mut acc);
+                acc
+            })
+            .collect();
+        add_in_order(&partials, col_sum);
     } else {
         body(g, col_sum);
     }
@@ -248,6 +252,43 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
+
+    /// Bias gradients (parallel column sums) do not depend on the thread count or on
+    /// scheduling, bit for bit.
+    #[test]
+    fn column_sums_have_the_same_bits_on_any_thread_count() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let cols = 48;
+        let rows = 3 * PAR_MIN_LEN / cols + 7;
+        let g: Vec<f32> = (0..rows * cols).map(|_| rng.gen_range(-1.0..1.0)).collect();
+        let out: Vec<f32> = (0..rows * cols)
+            .map(|_| rng.gen_range(0.01..0.99))
+            .collect();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                let mut sums = vec![0.0f32; cols];
+                add_column_sums(&g, &mut sums);
+                let mut grad = g.clone();
+                let mut bias = vec![0.0f32; cols];
+                Activation::Sigmoid.backward_bias(&out, &mut grad, &mut bias);
+                sums.iter()
+                    .chain(&bias)
+                    .map(|v| v.to_bits())
+                    .collect::<Vec<_>>()
+            })
+        };
+        let one = run(1);
+        for threads in [2, 3, 7] {
+            assert!(
+                run(threads) == one,
+                "{threads} threads give other bits than one"
+            );
+        }
+    }
 
     const ALL: [Activation; 4] = [
         Activation::Identity,

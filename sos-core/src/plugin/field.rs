@@ -114,6 +114,21 @@ pub trait RadianceField: Send + Sync {
     /// of the contracted position), `[n, seg_input_dim]`. Treated as constant in stage 2.
     fn seg_input(&self, positions: &[Vec3], out: &mut [f32]);
 
+    /// Density, colour and segmentation input at the same samples, without a tape (stage 2,
+    /// where the field is frozen). Fields whose segmentation input falls out of their forward
+    /// pass (NeRF's final trunk activations) override this to run that pass once.
+    fn forward_with_seg_input(
+        &self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        density: &mut [f32],
+        rgb: &mut [[f32; 3]],
+        seg_input: &mut [f32],
+    ) {
+        self.forward(positions, directions, density, rgb, false);
+        self.seg_input(positions, seg_input);
+    }
+
     /// Serialises all parameters (checkpoints).
     fn save_state(&self) -> Vec<u8>;
 

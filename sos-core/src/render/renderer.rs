@@ -68,6 +68,9 @@ pub struct Rendered {
     /// with its own tape; present only when rendering with `record` (training), so that the
     /// proposal network gets its own photometric loss as in NeRF.
     pub coarse: Option<Box<Rendered>>,
+    /// The field's segmentation input at each sample, `[n, seg_input_dim]`, when rendered by
+    /// [`render_with_seg_input`] within its budget; empty otherwise.
+    pub seg_input: Vec<f32>,
 }
 
 /// Marches, prunes and evaluates the field. Call [`Rendered::composite`] next.
@@ -77,6 +80,66 @@ pub fn render(
     rays: &RayBatch,
     options: RenderOptions,
     record: bool,
+    rng: &mut impl Rng,
+) -> Rendered {
+    render_impl(field, ctx, rays, options, record, 0, rng)
+}
+
+/// [`render`] of a frozen field (no tape) that also keeps the field's segmentation input at
+/// the surviving samples ([`Rendered::seg_input`]) when it takes at most `budget` bytes, from
+/// the same pass as density and colour where the field can (stage 2 then needs no second
+/// pass of, e.g., NeRF's trunk for its head).
+pub fn render_with_seg_input(
+    field: &dyn RadianceField,
+    ctx: RenderContext,
+    rays: &RayBatch,
+    options: RenderOptions,
+    budget: usize,
+    rng: &mut impl Rng,
+) -> Rendered {
+    render_impl(field, ctx, rays, options, false, budget, rng)
+}
+
+/// Density and colour of `samples`; with `seg_budget` bytes enough for their segmentation
+/// input (and no tape wanted), that too.
+fn evaluate(
+    field: &dyn RadianceField,
+    samples: &Samples,
+    record: bool,
+    seg_budget: usize,
+) -> (Vec<f32>, Vec<[f32; 3]>, FieldTape, Vec<f32>) {
+    let n = samples.len();
+    let mut density = vec![0.0; n];
+    let mut rgb = vec![[0.0; 3]; n];
+    let seg_len = n * field.seg_input_dim();
+    if !record && seg_len > 0 && seg_len.saturating_mul(std::mem::size_of::<f32>()) <= seg_budget {
+        let mut seg = vec![0.0; seg_len];
+        field.forward_with_seg_input(
+            &samples.positions,
+            &samples.directions,
+            &mut density,
+            &mut rgb,
+            &mut seg,
+        );
+        return (density, rgb, None, seg);
+    }
+    let tape = field.forward(
+        &samples.positions,
+        &samples.directions,
+        &mut density,
+        &mut rgb,
+        record,
+    );
+    (density, rgb, tape, Vec::new())
+}
+
+fn render_impl(
+    field: &dyn RadianceField,
+    ctx: RenderContext,
+    rays: &RayBatch,
+    options: RenderOptions,
+    record: bool,
+    seg_budget: usize,
     rng: &mut impl Rng,
 ) -> Rendered {
     let timer = std::time::Instant::now();
@@ -90,9 +153,7 @@ pub fn render(
     if !prune {
         // Nothing to decide from density alone: skip the density pass (for network fields it
         // costs nearly as much as the full pass).
-        let mut density = vec![0.0; candidates.len()];
-        let mut rgb = vec![[0.0; 3]; candidates.len()];
-        let tape = field.forward(&candidates.positions, &candidates.directions, &mut density, &mut rgb, record);
+        let (density, rgb, tape, seg_input) = evaluate(field, &candidates, record, seg_budget);
         if std::env::var("SOS_PROFILE").is_ok() {
             eprintln!(
                 "render: march {:.3} forward {:.3} (samples {})",
@@ -110,6 +171,7 @@ pub fn render(
             tape,
             n_candidates,
             coarse,
+            seg_input,
         };
     }
 
@@ -149,9 +211,7 @@ pub fn render(
     }
     let t_filter = timer.elapsed().as_secs_f64();
 
-    let mut density = vec![0.0; samples.len()];
-    let mut rgb = vec![[0.0; 3]; samples.len()];
-    let tape = field.forward(&samples.positions, &samples.directions, &mut density, &mut rgb, record);
+    let (density, rgb, tape, seg_input) = evaluate(field, &samples, record, seg_budget);
     if std::env::var("SOS_PROFILE").is_ok() {
         eprintln!(
             "render: march {:.3} density {:.3} filter {:.3} forward {:.3} (candidates {}, kept {})",
@@ -163,7 +223,17 @@ pub fn render(
             samples.len()
         );
     }
-    Rendered { samples, density, rgb, weights: Vec::new(), colors: Vec::new(), tape, n_candidates, coarse }
+    Rendered {
+        samples,
+        density,
+        rgb,
+        weights: Vec::new(),
+        colors: Vec::new(),
+        tape,
+        n_candidates,
+        coarse,
+        seg_input,
+    }
 }
 
 /// The proposal pass of a [`Hierarchical`] field: returns the fine candidates (proposal and
@@ -208,6 +278,7 @@ fn propose(
             tape,
             n_candidates: n,
             coarse: None,
+            seg_input: Vec::new(),
         };
         r.composite();
         let w = r.weights.clone();
@@ -524,9 +595,13 @@ mod tests {
             self.hierarchical
         }
         fn seg_input_dim(&self) -> usize {
-            0
+            2
         }
-        fn seg_input(&self, _: &[Vec3], _: &mut [f32]) {}
+        fn seg_input(&self, p: &[Vec3], out: &mut [f32]) {
+            for (p, row) in p.iter().zip(out.chunks_exact_mut(2)) {
+                row.copy_from_slice(&[p[0], p[1] * p[2]]);
+            }
+        }
         fn save_state(&self) -> Vec<u8> {
             Vec::new()
         }
@@ -584,6 +659,58 @@ mod tests {
             }
         }
         assert!(hits > 20 && dropped > 0.0, "{hits} hits, {dropped} weight dropped");
+    }
+
+    /// A frozen render keeps the segmentation input of exactly its surviving samples, and
+    /// only within its budget; the samples and their values are those of a plain render.
+    #[test]
+    fn frozen_render_keeps_the_segmentation_input_within_its_budget() {
+        let field = Ball {
+            evaluated: AtomicUsize::new(0),
+            hierarchical: None,
+        };
+        let (extent, contraction, rays) = setup();
+        let ctx = RenderContext {
+            extent: &extent,
+            contraction: &contraction,
+            occupancy: None,
+            near: 0.0,
+        };
+        let march = MarchOptions {
+            steps: 64,
+            stratified: false,
+        };
+        for options in [
+            RenderOptions {
+                march,
+                early_stop: 1e-4,
+                min_weight: 1e-3,
+            },
+            RenderOptions {
+                march,
+                early_stop: 0.0,
+                min_weight: 0.0,
+            },
+        ] {
+            let rng = || rand_chacha::ChaCha8Rng::seed_from_u64(0);
+            let plain = render(&field, ctx, &rays, options, false, &mut rng());
+            let kept = render_with_seg_input(&field, ctx, &rays, options, usize::MAX, &mut rng());
+            assert!(plain.seg_input.is_empty());
+            assert_eq!(
+                (&kept.samples.t, &kept.density, &kept.rgb),
+                (&plain.samples.t, &plain.density, &plain.rgb)
+            );
+            let mut want = vec![0.0; kept.samples.len() * 2];
+            field.seg_input(&kept.samples.positions, &mut want);
+            assert!(!want.is_empty());
+            assert_eq!(kept.seg_input, want);
+            let over =
+                render_with_seg_input(&field, ctx, &rays, options, want.len() * 4 - 1, &mut rng());
+            assert!(
+                over.seg_input.is_empty(),
+                "over its budget, nothing is kept"
+            );
+        }
     }
 
     #[test]

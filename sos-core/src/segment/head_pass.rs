@@ -7,6 +7,10 @@
 //! backward pass slow and erratic). When a batch's tapes would exceed the memory budget, the
 //! backward pass instead recomputes each chunk's input and forward pass: one extra head
 //! forward in exchange for buffers that stay in cache.
+//!
+//! The segmentation input comes from the render when it kept it ([`HeadSamples::seg_input`]:
+//! for NeRF it is the trunk's output, which the render computes anyway), else from the field,
+//! chunk by chunk.
 
 use crate::camera::Vec3;
 use crate::nn::MlpTape;
@@ -49,61 +53,125 @@ impl HeadTapes {
     }
 }
 
-/// Computes each chunk's segmentation input and gathers `run(chunk index, input, rows)`, the
-/// chunk's logits, into `[n, outputs]`.
+/// The samples the head runs on.
+#[derive(Debug, Clone, Copy)]
+pub struct HeadSamples<'a> {
+    /// Sample positions.
+    pub positions: &'a [Vec3],
+    /// The field's segmentation input at them, `[n, seg_input_dim]`, when the render kept it
+    /// ([`crate::render::renderer::Rendered::seg_input`]); empty to compute it chunk by chunk.
+    pub seg_input: &'a [f32],
+}
+
+impl<'a> HeadSamples<'a> {
+    /// Samples whose segmentation input is computed here.
+    pub fn at(positions: &'a [Vec3]) -> Self {
+        HeadSamples {
+            positions,
+            seg_input: &[],
+        }
+    }
+
+    /// Chunk `i`'s segmentation input: the kept one, or computed into `buffer`.
+    fn chunk_input<'b>(
+        &'b self,
+        field: &dyn RadianceField,
+        i: usize,
+        buffer: &'b mut Vec<f32>,
+    ) -> &'b [f32] {
+        let dim = field.seg_input_dim();
+        let chunk = &self.positions[i * CHUNK..((i + 1) * CHUNK).min(self.positions.len())];
+        if !self.seg_input.is_empty() {
+            return &self.seg_input[i * CHUNK * dim..][..chunk.len() * dim];
+        }
+        buffer.resize(chunk.len() * dim, 0.0);
+        field.seg_input(chunk, buffer);
+        buffer
+    }
+
+    fn check(&self, field: &dyn RadianceField) {
+        assert!(
+            self.seg_input.is_empty()
+                || self.seg_input.len() == self.positions.len() * field.seg_input_dim(),
+            "head_pass: the kept segmentation input is not [n, seg_input_dim]"
+        );
+    }
+}
+
+/// Gathers `run(chunk index, input, rows)`, each chunk's logits, into `[n, outputs]`.
 fn over_chunks(
     field: &dyn RadianceField,
     head: &SegHead,
-    positions: &[Vec3],
+    samples: HeadSamples,
     mut run: impl FnMut(usize, &[f32], usize) -> Vec<f32>,
 ) -> Vec<f32> {
-    let (dim, d) = (field.seg_input_dim(), head.outputs());
-    let mut logits = vec![0.0f32; positions.len() * d];
-    let mut input = vec![0.0f32; positions.len().min(CHUNK) * dim];
-    for (i, (chunk, out)) in positions.chunks(CHUNK).zip(logits.chunks_mut(CHUNK * d)).enumerate() {
-        let x = &mut input[..chunk.len() * dim];
-        field.seg_input(chunk, x);
-        out.copy_from_slice(&run(i, x, chunk.len()));
+    samples.check(field);
+    let d = head.outputs();
+    let n = samples.positions.len();
+    let mut logits = vec![0.0f32; n * d];
+    let mut buffer = Vec::new();
+    for (i, out) in logits.chunks_mut(CHUNK * d).enumerate() {
+        let x = samples.chunk_input(field, i, &mut buffer);
+        out.copy_from_slice(&run(i, x, out.len() / d));
     }
     logits
 }
 
 /// Logits of every sample, `[n, outputs]`, without a tape.
 pub fn sample_logits(field: &dyn RadianceField, head: &SegHead, positions: &[Vec3]) -> Vec<f32> {
-    over_chunks(field, head, positions, |_, x, n| head.infer(x, n))
+    over_chunks(field, head, HeadSamples::at(positions), |_, x, n| {
+        head.infer(x, n)
+    })
 }
 
 /// Logits of every sample, `[n, outputs]`, keeping the chunks' tapes in `tapes` when they fit
 /// its budget, for [`backward`].
-pub fn forward(field: &dyn RadianceField, head: &SegHead, positions: &[Vec3], tapes: &mut HeadTapes) -> Vec<f32> {
+pub fn forward(
+    field: &dyn RadianceField,
+    head: &SegHead,
+    samples: HeadSamples,
+    tapes: &mut HeadTapes,
+) -> Vec<f32> {
     tapes.used = 0;
-    if !tapes.fits(field, head, positions.len()) {
-        return sample_logits(field, head, positions);
+    if !tapes.fits(field, head, samples.positions.len()) {
+        return over_chunks(field, head, samples, |_, x, n| head.infer(x, n));
     }
     let kept = &mut tapes.tapes;
-    let logits = over_chunks(field, head, positions, |i, x, n| {
+    let logits = over_chunks(field, head, samples, |i, x, n| {
         if i == kept.len() {
             kept.push(MlpTape::default());
         }
         head.forward_into(x, n, &mut kept[i])
     });
-    tapes.used = positions.len().div_ceil(CHUNK);
+    tapes.used = samples.positions.len().div_ceil(CHUNK);
     logits
 }
 
 /// Accumulates the head's parameter gradients for `grad_logits = ∂L/∂(sample logits)`,
-/// `[n, outputs]`, from the tapes of the [`forward`] pass over the same `positions`, or by
+/// `[n, outputs]`, from the tapes of the [`forward`] pass over the same samples, or by
 /// recomputing each chunk's forward pass where it kept none.
-pub fn backward(field: &dyn RadianceField, head: &mut SegHead, positions: &[Vec3], grad_logits: &[f32], tapes: &HeadTapes) {
-    let (dim, d) = (field.seg_input_dim(), head.outputs());
-    assert_eq!(grad_logits.len(), positions.len() * d, "head_pass::backward: gradient is not [n, outputs]");
+pub fn backward(
+    field: &dyn RadianceField,
+    head: &mut SegHead,
+    samples: HeadSamples,
+    grad_logits: &[f32],
+    tapes: &HeadTapes,
+) {
+    samples.check(field);
+    let d = head.outputs();
+    let n = samples.positions.len();
+    assert_eq!(
+        grad_logits.len(),
+        n * d,
+        "head_pass::backward: gradient is not [n, outputs]"
+    );
     let taped = tapes.used > 0;
     assert!(
-        !taped || tapes.used == positions.len().div_ceil(CHUNK),
+        !taped || tapes.used == n.div_ceil(CHUNK),
         "head_pass::backward: the tapes are from another batch"
     );
-    let mut input = if taped { Vec::new() } else { vec![0.0f32; positions.len().min(CHUNK) * dim] };
-    for (i, (chunk, grad)) in positions.chunks(CHUNK).zip(grad_logits.chunks(CHUNK * d)).enumerate() {
+    let mut buffer = Vec::new();
+    for (i, grad) in grad_logits.chunks(CHUNK * d).enumerate() {
         // Samples that no loss reaches (weight below every threshold) need no pass at all.
         if grad.iter().all(|&g| g == 0.0) {
             continue;
@@ -111,9 +179,8 @@ pub fn backward(field: &dyn RadianceField, head: &mut SegHead, positions: &[Vec3
         if taped {
             head.backward(&tapes.tapes[i], grad);
         } else {
-            let x = &mut input[..chunk.len() * dim];
-            field.seg_input(chunk, x);
-            let (_, tape) = head.forward(x, chunk.len());
+            let x = samples.chunk_input(field, i, &mut buffer);
+            let (_, tape) = head.forward(x, grad.len() / d);
             head.backward(&tape, grad);
         }
     }
@@ -185,15 +252,36 @@ mod tests {
 
         let grad: Vec<f32> = (0..n * 2).map(|i| ((i * 37 % 101) as f32 / 101.0 - 0.5) * 1e-3).collect();
         whole.backward(&tape, &grad);
-        // Kept tapes (reused over two passes, the first on a larger batch) and recomputed ones.
-        for budget in [TAPE_BUDGET, 0] {
+        let moved: Vec<Vec3> = positions.iter().map(|p| [p[0] + 1.0, p[1], p[2]]).collect();
+        // Kept tapes (reused over two passes, the first on a larger batch) and recomputed ones,
+        // each with the input computed here and with the input a render kept.
+        for (budget, kept_input) in [
+            (TAPE_BUDGET, false),
+            (0, false),
+            (TAPE_BUDGET, true),
+            (0, true),
+        ] {
             let mut chunked = head.clone();
             let mut tapes = HeadTapes::with_budget(budget);
-            let more: Vec<Vec3> = positions.iter().chain(&positions[..CHUNK]).copied().collect();
-            forward(&field, &chunked, &more, &mut tapes);
-            close(&forward(&field, &chunked, &positions, &mut tapes));
+            let more: Vec<Vec3> = positions
+                .iter()
+                .chain(&positions[..CHUNK])
+                .copied()
+                .collect();
+            forward(&field, &chunked, HeadSamples::at(&more), &mut tapes);
+            // The kept input must be used as given: its positions are moved, so recomputing
+            // from them would give other logits.
+            let samples = if kept_input {
+                HeadSamples {
+                    positions: &moved,
+                    seg_input: &input,
+                }
+            } else {
+                HeadSamples::at(&positions)
+            };
+            close(&forward(&field, &chunked, samples, &mut tapes));
             assert_eq!(tapes.used > 0, budget > 0);
-            backward(&field, &mut chunked, &positions, &grad, &tapes);
+            backward(&field, &mut chunked, samples, &grad, &tapes);
             let (gw, gc) = (whole.mlp.params_mut(), chunked.mlp.params_mut());
             for (pw, pc) in gw.iter().zip(&gc) {
                 let scale = pw.grad.iter().fold(0.0f32, |m, g| m.max(g.abs())).max(1e-12);

@@ -12,10 +12,10 @@ use crate::image::RgbImage;
 use crate::plugin::{ContrastiveLoss, PairMiner, PatchBatch};
 use crate::render::composite::{RayColor, RayGrad, EMPTY_RAY_DEPTH};
 use crate::render::rays::RayBatch;
-use crate::render::renderer::{render, Rendered};
+use crate::render::renderer::{render, render_with_seg_input, Rendered};
 use crate::segment::defaults;
 use crate::segment::head::SegHead;
-use crate::segment::head_pass;
+use crate::segment::head_pass::{self, HeadSamples};
 use crate::segment::patches::{patch_rays, Patch, PatchSampler};
 use crate::segment::teacher::{captured_patch, Teacher};
 use crate::train::progress::log_line;
@@ -23,6 +23,10 @@ use crate::train::session::{kind_of, Session};
 
 /// Consecutive non-finite losses after which stage 2 stops.
 const MAX_BAD_STEPS: usize = 20;
+
+/// Bytes of segmentation input a stage-2 render may keep for the head (NeRF's 319 floats for
+/// 1.7 M samples); larger batches compute it again in the head pass.
+const SEG_INPUT_BUDGET: usize = 2 << 30;
 
 /// Offset of the patch sampler's seed from the run's (its own stream, so the patch sequence
 /// does not depend on what else a step draws).
@@ -154,12 +158,17 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
         }
         let timer = Instant::now();
         let rays = patch_rays(&session.scene, &patches);
-        let mut r = render_rays(session, &rays, joint, &mut rng);
+        let mut r = render_rays(session, &rays, joint, SEG_INPUT_BUDGET, &mut rng);
 
         // Head on the surviving samples, then logits composited with the field's weights.
         let n_samples = r.samples.len();
         let t_field = timer.elapsed().as_secs_f64();
-        let sample_logits = head_pass::forward(session.field.as_ref(), &seg.head, &r.samples.positions, &mut tapes);
+        let head_samples = HeadSamples {
+            positions: &r.samples.positions,
+            seg_input: &r.seg_input,
+        };
+        let sample_logits =
+            head_pass::forward(session.field.as_ref(), &seg.head, head_samples, &mut tapes);
         let mut logits = vec![0.0f32; n_patches * d_seg * rays_per_patch];
         for ray in 0..rays.len() {
             let (patch, pix) = (ray / rays_per_patch, ray % rays_per_patch);
@@ -240,8 +249,20 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
                 }
             }
         }
-        head_pass::backward(session.field.as_ref(), &mut seg.head, &r.samples.positions, &grad_sample, &tapes);
-        let lr_factor = cfg.final_lr_factor.powf(seg.step as f32 / cfg.steps.max(1) as f32);
+        let head_samples = HeadSamples {
+            positions: &r.samples.positions,
+            seg_input: &r.seg_input,
+        };
+        head_pass::backward(
+            session.field.as_ref(),
+            &mut seg.head,
+            head_samples,
+            &grad_sample,
+            &tapes,
+        );
+        let lr_factor = cfg
+            .final_lr_factor
+            .powf(seg.step as f32 / cfg.steps.max(1) as f32);
         seg.head.step(lr_factor);
         if std::env::var("SOS_PROFILE").is_ok() {
             eprintln!(
@@ -296,14 +317,24 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
 }
 
 /// Renders patch rays as a stage-2 step does. With the density frozen (`joint = false`),
-/// samples whose compositing weight is below `segment.weight_threshold` are skipped: they
-/// cannot matter.
-fn render_rays(session: &Session, rays: &RayBatch, joint: bool, rng: &mut impl Rng) -> Rendered {
+/// samples whose compositing weight is below `segment.weight_threshold` are skipped (they
+/// cannot matter), and the render keeps the field's segmentation input at the rest when it
+/// fits `seg_budget` bytes, so the head needs no second pass of the field.
+fn render_rays(
+    session: &Session,
+    rays: &RayBatch,
+    joint: bool,
+    seg_budget: usize,
+    rng: &mut impl Rng,
+) -> Rendered {
     let mut options = session.render_options(false);
-    if !joint {
+    let (field, ctx) = (session.field.as_ref(), session.render_context());
+    let mut r = if joint {
+        render(field, ctx, rays, options, true, rng)
+    } else {
         options.min_weight = session.config.segment.weight_threshold;
-    }
-    let mut r = render(session.field.as_ref(), session.render_context(), rays, options, joint, rng);
+        render_with_seg_input(field, ctx, rays, options, seg_budget, rng)
+    };
     r.composite();
     r
 }
@@ -328,7 +359,7 @@ pub fn render_patches(session: &Session, patches: &[Patch]) -> Vec<RgbImage> {
     let rays = patch_rays(&session.scene, patches);
     // Evaluation marching is not stratified: the generator does not change the result.
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed);
-    let r = render_rays(session, &rays, false, &mut rng);
+    let r = render_rays(session, &rays, false, 0, &mut rng);
     patch_images(&r.colors, session.config.segment.patch_size as usize)
 }
 
