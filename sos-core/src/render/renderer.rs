@@ -223,17 +223,7 @@ fn render_impl(
             samples.len()
         );
     }
-    Rendered {
-        samples,
-        density,
-        rgb,
-        weights: Vec::new(),
-        colors: Vec::new(),
-        tape,
-        n_candidates,
-        coarse,
-        seg_input,
-    }
+    Rendered { samples, density, rgb, weights: Vec::new(), colors: Vec::new(), tape, n_candidates, coarse, seg_input }
 }
 
 /// The proposal pass of a [`Hierarchical`] field: returns the fine candidates (proposal and
