@@ -363,17 +363,8 @@ fn pass2<const D: usize>(
     let mut loss = 0.0f64;
     for (k, sums) in row_sums.iter().enumerate() {
         let j = partner[k];
-        let view = PairView::<D> {
-            pa: pts(k),
-            pb: pts(j),
-            sa: sl(k),
-            sb: sl(j),
-            kernel,
-        };
-        let row_shift: Vec<f32> = sums
-            .iter()
-            .map(|&s| (global_mean - shift - s / m as f64) as f32)
-            .collect();
+        let view = PairView::<D> { pa: pts(k), pb: pts(j), sa: sl(k), sb: sl(j), kernel };
+        let row_shift: Vec<f32> = sums.iter().map(|&s| (global_mean - shift - s / m as f64) as f32).collect();
         // A fixed split of the rows into tasks, merged in order: the same sums every run.
         let task_rows = ROWS.max(m.div_ceil(MAX_TASKS));
         let acc = (0..m.div_ceil(task_rows))
@@ -382,12 +373,7 @@ fn pass2<const D: usize>(
                 let mut acc = PairAcc::new(D, m);
                 let rows = task * task_rows..((task + 1) * task_rows).min(m);
                 for start in rows.clone().step_by(ROWS) {
-                    pair_rows(
-                        &view,
-                        start..(start + ROWS).min(rows.end),
-                        &row_shift,
-                        &mut acc,
-                    );
+                    pair_rows(&view, start..(start + ROWS).min(rows.end), &row_shift, &mut acc);
                 }
                 acc
             })

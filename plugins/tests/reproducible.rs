@@ -44,19 +44,13 @@ stride = 2
 "#
     );
     let config = RunConfig::parse(&text, Path::new("reproducible.toml")).unwrap();
-    let dir = std::env::temp_dir().join(format!(
-        "sos-reproducible-{field}-{threads}-{}",
-        std::process::id()
-    ));
+    let dir = std::env::temp_dir().join(format!("sos-reproducible-{field}-{threads}-{}", std::process::id()));
     Session::from_config(config, &dir).unwrap()
 }
 
 /// Both stages in a pool of `threads`: the field's state and the head's bytes.
 fn run(field: &str, threads: usize) -> (Vec<u8>, Vec<u8>) {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap();
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
     pool.install(|| {
         let mut s = session(field, threads);
         train_photometric(&mut s, false).unwrap();
@@ -73,14 +67,8 @@ fn same_bits_on_any_thread_count() {
         let one = run(field, 1);
         for threads in [2, 3] {
             let other = run(field, threads);
-            assert!(
-                other.0 == one.0,
-                "{field}: the field after stage 1 differs with {threads} threads"
-            );
-            assert!(
-                other.1 == one.1,
-                "{field}: the head after stage 2 differs with {threads} threads"
-            );
+            assert!(other.0 == one.0, "{field}: the field after stage 1 differs with {threads} threads");
+            assert!(other.1 == one.1, "{field}: the head after stage 2 differs with {threads} threads");
         }
     }
 }

@@ -148,12 +148,7 @@ fn speed(checkpoint: &Path, steps: usize) {
     // The reference pipeline without skipping runs ONE patch, as the reference's 41 s figure
     // is for one patch (eight would need about 9 GB for the head's inputs alone); so does
     // uniform sampling without skipping, for the same reason.
-    let one_patch = [
-        "no-skipping",
-        "weight-threshold-only",
-        "uniform-no-skipping",
-        "uniform-weight-threshold-only",
-    ];
+    let one_patch = ["no-skipping", "weight-threshold-only", "uniform-no-skipping", "uniform-weight-threshold-only"];
     let modes: Vec<Mode> = selected_modes(&[
         "all-skips",
         "no-weight-threshold",
@@ -163,21 +158,10 @@ fn speed(checkpoint: &Path, steps: usize) {
         "no-skipping",
     ])
     .into_iter()
-    .map(|m| {
-        if one_patch.contains(&m.name) {
-            Mode { patches: 1, ..m }
-        } else {
-            m
-        }
-    })
+    .map(|m| if one_patch.contains(&m.name) { Mode { patches: 1, ..m } } else { m })
     .collect();
-    println!(
-        "nerf_stage2 speed: checkpoint {}, {steps} timed step(s) per mode after 1 warm-up",
-        checkpoint.display()
-    );
-    println!(
-        "| mode | patches | rays | s/step (wall) | CPU s/step | head samples/ray | load avg |"
-    );
+    println!("nerf_stage2 speed: checkpoint {}, {steps} timed step(s) per mode after 1 warm-up", checkpoint.display());
+    println!("| mode | patches | rays | s/step (wall) | CPU s/step | head samples/ray | load avg |");
     println!("|---|---|---|---|---|---|---|");
     for mode in &modes {
         let mut session = open(mode, 1, checkpoint);
@@ -220,43 +204,14 @@ fn catalogue() -> Vec<Mode> {
     };
     vec![
         ALL_SKIPS,
-        Mode {
-            name: "no-weight-threshold",
-            weight_threshold: 0.0,
-            ..ALL_SKIPS
-        },
-        Mode {
-            name: "no-early-termination",
-            early_stop: 0.0,
-            ..ALL_SKIPS
-        },
-        Mode {
-            name: "no-occupancy",
-            occupancy: false,
-            ..ALL_SKIPS
-        },
-        Mode {
-            name: "all-skips-hierarchical",
-            hierarchical: true,
-            ..ALL_SKIPS
-        },
+        Mode { name: "no-weight-threshold", weight_threshold: 0.0, ..ALL_SKIPS },
+        Mode { name: "no-early-termination", early_stop: 0.0, ..ALL_SKIPS },
+        Mode { name: "no-occupancy", occupancy: false, ..ALL_SKIPS },
+        Mode { name: "all-skips-hierarchical", hierarchical: true, ..ALL_SKIPS },
         no_skip,
-        Mode {
-            name: "weight-threshold-only",
-            weight_threshold: 1e-3,
-            ..no_skip
-        },
-        Mode {
-            name: "uniform-no-skipping",
-            hierarchical: false,
-            ..no_skip
-        },
-        Mode {
-            name: "uniform-weight-threshold-only",
-            hierarchical: false,
-            weight_threshold: 1e-3,
-            ..no_skip
-        },
+        Mode { name: "weight-threshold-only", weight_threshold: 1e-3, ..no_skip },
+        Mode { name: "uniform-no-skipping", hierarchical: false, ..no_skip },
+        Mode { name: "uniform-weight-threshold-only", hierarchical: false, weight_threshold: 1e-3, ..no_skip },
     ]
 }
 
@@ -272,10 +227,7 @@ fn selected_modes(default: &[&str]) -> Vec<Mode> {
         .map(|n| {
             *all.iter().find(|m| m.name == n).unwrap_or_else(|| {
                 let known: Vec<&str> = all.iter().map(|m| m.name).collect();
-                eprintln!(
-                    "unknown mode `{n}` in NERF_STAGE2_MODES; known: {}",
-                    known.join(", ")
-                );
+                eprintln!("unknown mode `{n}` in NERF_STAGE2_MODES; known: {}", known.join(", "));
                 std::process::exit(2);
             })
         })
@@ -289,11 +241,7 @@ fn selected_modes(default: &[&str]) -> Vec<Mode> {
 fn quality(checkpoint: &Path, steps: usize) {
     let modes: Vec<Mode> = selected_modes(&["all-skips", "no-skipping"])
         .into_iter()
-        .map(|m| Mode {
-            patches: 4,
-            patch_size: 24,
-            ..m
-        })
+        .map(|m| Mode { patches: 4, patch_size: 24, ..m })
         .collect();
     let seeds: Vec<u64> = std::env::var("NERF_STAGE2_SEEDS")
         .ok()
@@ -315,8 +263,7 @@ fn quality(checkpoint: &Path, steps: usize) {
             let t = Instant::now();
             train_segmentation(&mut session, &mut seg, false).expect("stage 2 trains");
             let train_s = t.elapsed().as_secs_f64();
-            let inference = MaskInference::new(&session, &seg.head, Some(seg.teacher.extractor()))
-                .expect("inference");
+            let inference = MaskInference::new(&session, &seg.head, Some(seg.teacher.extractor())).expect("inference");
             let eval = evaluate_masks(&session, &inference, false).expect("masks");
             let iou = eval.segmentation.iou();
             miou[si][mi] = iou.miou.unwrap_or(f64::NAN);
@@ -329,16 +276,11 @@ fn quality(checkpoint: &Path, steps: usize) {
                 f(iou.iou_bg),
                 f(iou.iou_fg),
                 f(iou.miou),
-                eval.image
-                    .mean_psnr()
-                    .map_or("-".into(), |p| format!("{p:.2}"))
+                eval.image.mean_psnr().map_or("-".into(), |p| format!("{p:.2}"))
             );
         }
     }
-    println!(
-        "\nmIoU minus `{}`'s, seed by seed, then the mean:",
-        modes[0].name
-    );
+    println!("\nmIoU minus `{}`'s, seed by seed, then the mean:", modes[0].name);
     for (mi, mode) in modes.iter().enumerate().skip(1) {
         let diffs: Vec<f64> = miou.iter().map(|row| row[mi] - row[0]).collect();
         let mean = diffs.iter().sum::<f64>() / diffs.len().max(1) as f64;
@@ -403,7 +345,9 @@ fn head_phase(checkpoint: &Path, repeats: usize) {
         "all-skips",
     ]);
     println!("nerf_stage2 head phase: one 64x64 patch (4096 rays), median of {repeats}");
-    println!("| mode | head samples/ray | render s | head forward + backward s | segmentation input again s | load avg |");
+    println!(
+        "| mode | head samples/ray | render s | head forward + backward s | segmentation input again s | load avg |"
+    );
     println!("|---|---|---|---|---|---|");
     let median = |mut v: Vec<f64>| {
         v.sort_by(f64::total_cmp);
@@ -435,9 +379,7 @@ fn head_phase(checkpoint: &Path, repeats: usize) {
             render_s.push(t.elapsed().as_secs_f64());
             let n = r.samples.len();
             per_ray = n as f64 / rays.len() as f64;
-            let grads: Vec<f32> = (0..n * head.outputs())
-                .map(|_| rng.gen_range(-1e-3..1e-3))
-                .collect();
+            let grads: Vec<f32> = (0..n * head.outputs()).map(|_| rng.gen_range(-1e-3..1e-3)).collect();
             let t = Instant::now();
             let (_, tape) = head.forward(&r.seg_input, n);
             head.backward(&tape, &grads);
@@ -504,23 +446,11 @@ fn weight_spread(checkpoint: &Path) {
     };
     let session = open(&mode, 1, checkpoint);
     let view = session.scene.train[0];
-    let grid = PatchGrid {
-        col0: 40,
-        row0: 28,
-        size: 64,
-        stride: 1,
-    };
+    let grid = PatchGrid { col0: 40, row0: 28, size: 64, stride: 1 };
     let rays = patch_rays(&session.scene, &[Patch { view, grid }]);
     let options = session.render_options(false);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-    let mut r = render(
-        session.field.as_ref(),
-        session.render_context(),
-        &rays,
-        options,
-        false,
-        &mut rng,
-    );
+    let mut r = render(session.field.as_ref(), session.render_context(), &rays, options, false, &mut rng);
     r.composite();
     let n_rays = rays.len() as f64;
     let mut counts = [0.0f64; 9];
@@ -557,7 +487,10 @@ fn weight_spread(checkpoint: &Path) {
             *c += v;
         }
     }
-    println!("nerf_stage2 weights: one 64x64 patch, coarse + fine, no skipping; mean per ray (opacity {:.3})", opaque / n_rays);
+    println!(
+        "nerf_stage2 weights: one 64x64 patch, coarse + fine, no skipping; mean per ray (opacity {:.3})",
+        opaque / n_rays
+    );
     let names = [
         "samples",
         "w > 1e-3",

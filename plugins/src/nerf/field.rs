@@ -122,13 +122,7 @@ impl RadianceField for NerfNet {
         rgb: &mut [[f32; 3]],
         seg_input: &mut [f32],
     ) {
-        self.mlp.forward_with_features(
-            &self.coords(positions),
-            directions,
-            density,
-            rgb,
-            seg_input,
-        );
+        self.mlp.forward_with_features(&self.coords(positions), directions, density, rgb, seg_input);
     }
 
     fn save_state(&self) -> Vec<u8> {

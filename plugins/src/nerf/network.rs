@@ -170,12 +170,10 @@ fn encode_dirs(dirs: &[Vec3], frequencies: usize) -> Vec<f32> {
 /// Rows `[h_i, pe_i]` of the segmentation input from trunk activations `[n, w]` and encoded
 /// positions `[n, pe_dim]`.
 fn join_rows(h: &[f32], w: usize, pe: &[f32], pe_dim: usize, out: &mut [f32]) {
-    out.par_chunks_mut(w + pe_dim)
-        .enumerate()
-        .for_each(|(i, r)| {
-            r[..w].copy_from_slice(&h[i * w..(i + 1) * w]);
-            r[w..].copy_from_slice(&pe[i * pe_dim..(i + 1) * pe_dim]);
-        });
+    out.par_chunks_mut(w + pe_dim).enumerate().for_each(|(i, r)| {
+        r[..w].copy_from_slice(&h[i * w..(i + 1) * w]);
+        r[w..].copy_from_slice(&pe[i * pe_dim..(i + 1) * pe_dim]);
+    });
 }
 
 fn relu_in_place(x: &mut [f32]) {

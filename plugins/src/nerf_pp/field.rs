@@ -158,8 +158,7 @@ impl NerfPpNet {
         let (w, dim) = (self.fg.width(), self.seg_input_dim());
         let row = net.width() + net.pe_dim();
         for (j, &i) in idx.iter().enumerate() {
-            out[i as usize * dim..i as usize * dim + w]
-                .copy_from_slice(&features[j * row..j * row + w]);
+            out[i as usize * dim..i as usize * dim + w].copy_from_slice(&features[j * row..j * row + w]);
         }
     }
 
@@ -170,11 +169,7 @@ impl NerfPpNet {
             let contracted = match self.space.route(*p) {
                 Route::Fg(_, _, c) | Route::Bg(_, _, c) | Route::Empty(c) => c,
             };
-            positional_encoding(
-                &contracted,
-                self.fg.pos_frequencies,
-                &mut out[i * dim + w..(i + 1) * dim],
-            );
+            positional_encoding(&contracted, self.fg.pos_frequencies, &mut out[i * dim + w..(i + 1) * dim]);
         }
     }
 }
@@ -449,28 +444,14 @@ mod tests {
     fn fused_forward_matches_the_separate_passes() {
         let f = NerfPpNet::new(&tiny(), sphere_space(false), 3);
         let g = NerfPpNet::new(&tiny(), sphere_space(true), 3);
-        let positions = vec![
-            [1.5, 0.3, -0.4],
-            [1.0, 6.0, 2.0],
-            [0.2, -0.9, 0.7],
-            [-9.0, 1.0, 3.0],
-        ];
-        let dirs = vec![
-            [0.0, 0.6, 0.8],
-            [0.0, 1.0, 0.0],
-            [1.0, 0.0, 0.0],
-            [-0.6, 0.0, 0.8],
-        ];
+        let positions = vec![[1.5, 0.3, -0.4], [1.0, 6.0, 2.0], [0.2, -0.9, 0.7], [-9.0, 1.0, 3.0]];
+        let dirs = vec![[0.0, 0.6, 0.8], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [-0.6, 0.0, 0.8]];
         for net in [&f, &g] {
             let dim = net.seg_input_dim();
             let (mut d, mut c, mut seg) = (vec![0.0; 4], vec![[0.0; 3]; 4], vec![0.0; 4 * dim]);
             net.forward(&positions, &dirs, &mut d, &mut c, false);
             net.seg_input(&positions, &mut seg);
-            let (mut d2, mut c2, mut seg2) = (
-                vec![f32::NAN; 4],
-                vec![[f32::NAN; 3]; 4],
-                vec![f32::NAN; 4 * dim],
-            );
+            let (mut d2, mut c2, mut seg2) = (vec![f32::NAN; 4], vec![[f32::NAN; 3]; 4], vec![f32::NAN; 4 * dim]);
             net.forward_with_seg_input(&positions, &dirs, &mut d2, &mut c2, &mut seg2);
             assert_eq!((d2, c2, seg2), (d, c, seg));
         }

@@ -261,41 +261,25 @@ mod tests {
         let cols = 48;
         let rows = 3 * PAR_MIN_LEN / cols + 7;
         let g: Vec<f32> = (0..rows * cols).map(|_| rng.gen_range(-1.0..1.0)).collect();
-        let out: Vec<f32> = (0..rows * cols)
-            .map(|_| rng.gen_range(0.01..0.99))
-            .collect();
+        let out: Vec<f32> = (0..rows * cols).map(|_| rng.gen_range(0.01..0.99)).collect();
         let run = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             pool.install(|| {
                 let mut sums = vec![0.0f32; cols];
                 add_column_sums(&g, &mut sums);
                 let mut grad = g.clone();
                 let mut bias = vec![0.0f32; cols];
                 Activation::Sigmoid.backward_bias(&out, &mut grad, &mut bias);
-                sums.iter()
-                    .chain(&bias)
-                    .map(|v| v.to_bits())
-                    .collect::<Vec<_>>()
+                sums.iter().chain(&bias).map(|v| v.to_bits()).collect::<Vec<_>>()
             })
         };
         let one = run(1);
         for threads in [2, 3, 7] {
-            assert!(
-                run(threads) == one,
-                "{threads} threads give other bits than one"
-            );
+            assert!(run(threads) == one, "{threads} threads give other bits than one");
         }
     }
 
-    const ALL: [Activation; 4] = [
-        Activation::Identity,
-        Activation::Relu,
-        Activation::Sigmoid,
-        Activation::Softplus,
-    ];
+    const ALL: [Activation; 4] = [Activation::Identity, Activation::Relu, Activation::Sigmoid, Activation::Softplus];
 
     /// Central differences in f64 of the f32 forward, vs. the backward from the output.
     #[test]

@@ -114,22 +114,10 @@ fn evaluate(
     let seg_len = n * field.seg_input_dim();
     if !record && seg_len > 0 && seg_len.saturating_mul(std::mem::size_of::<f32>()) <= seg_budget {
         let mut seg = vec![0.0; seg_len];
-        field.forward_with_seg_input(
-            &samples.positions,
-            &samples.directions,
-            &mut density,
-            &mut rgb,
-            &mut seg,
-        );
+        field.forward_with_seg_input(&samples.positions, &samples.directions, &mut density, &mut rgb, &mut seg);
         return (density, rgb, None, seg);
     }
-    let tape = field.forward(
-        &samples.positions,
-        &samples.directions,
-        &mut density,
-        &mut rgb,
-        record,
-    );
+    let tape = field.forward(&samples.positions, &samples.directions, &mut density, &mut rgb, record);
     (density, rgb, tape, Vec::new())
 }
 
@@ -655,51 +643,25 @@ mod tests {
     /// only within its budget; the samples and their values are those of a plain render.
     #[test]
     fn frozen_render_keeps_the_segmentation_input_within_its_budget() {
-        let field = Ball {
-            evaluated: AtomicUsize::new(0),
-            hierarchical: None,
-        };
+        let field = Ball { evaluated: AtomicUsize::new(0), hierarchical: None };
         let (extent, contraction, rays) = setup();
-        let ctx = RenderContext {
-            extent: &extent,
-            contraction: &contraction,
-            occupancy: None,
-            near: 0.0,
-        };
-        let march = MarchOptions {
-            steps: 64,
-            stratified: false,
-        };
+        let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
+        let march = MarchOptions { steps: 64, stratified: false };
         for options in [
-            RenderOptions {
-                march,
-                early_stop: 1e-4,
-                min_weight: 1e-3,
-            },
-            RenderOptions {
-                march,
-                early_stop: 0.0,
-                min_weight: 0.0,
-            },
+            RenderOptions { march, early_stop: 1e-4, min_weight: 1e-3 },
+            RenderOptions { march, early_stop: 0.0, min_weight: 0.0 },
         ] {
             let rng = || rand_chacha::ChaCha8Rng::seed_from_u64(0);
             let plain = render(&field, ctx, &rays, options, false, &mut rng());
             let kept = render_with_seg_input(&field, ctx, &rays, options, usize::MAX, &mut rng());
             assert!(plain.seg_input.is_empty());
-            assert_eq!(
-                (&kept.samples.t, &kept.density, &kept.rgb),
-                (&plain.samples.t, &plain.density, &plain.rgb)
-            );
+            assert_eq!((&kept.samples.t, &kept.density, &kept.rgb), (&plain.samples.t, &plain.density, &plain.rgb));
             let mut want = vec![0.0; kept.samples.len() * 2];
             field.seg_input(&kept.samples.positions, &mut want);
             assert!(!want.is_empty());
             assert_eq!(kept.seg_input, want);
-            let over =
-                render_with_seg_input(&field, ctx, &rays, options, want.len() * 4 - 1, &mut rng());
-            assert!(
-                over.seg_input.is_empty(),
-                "over its budget, nothing is kept"
-            );
+            let over = render_with_seg_input(&field, ctx, &rays, options, want.len() * 4 - 1, &mut rng());
+            assert!(over.seg_input.is_empty(), "over its budget, nothing is kept");
         }
     }
 

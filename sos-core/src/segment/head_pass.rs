@@ -66,19 +66,11 @@ pub struct HeadSamples<'a> {
 impl<'a> HeadSamples<'a> {
     /// Samples whose segmentation input is computed here.
     pub fn at(positions: &'a [Vec3]) -> Self {
-        HeadSamples {
-            positions,
-            seg_input: &[],
-        }
+        HeadSamples { positions, seg_input: &[] }
     }
 
     /// Chunk `i`'s segmentation input: the kept one, or computed into `buffer`.
-    fn chunk_input<'b>(
-        &'b self,
-        field: &dyn RadianceField,
-        i: usize,
-        buffer: &'b mut Vec<f32>,
-    ) -> &'b [f32] {
+    fn chunk_input<'b>(&'b self, field: &dyn RadianceField, i: usize, buffer: &'b mut Vec<f32>) -> &'b [f32] {
         let dim = field.seg_input_dim();
         let chunk = &self.positions[i * CHUNK..((i + 1) * CHUNK).min(self.positions.len())];
         if !self.seg_input.is_empty() {
@@ -91,8 +83,7 @@ impl<'a> HeadSamples<'a> {
 
     fn check(&self, field: &dyn RadianceField) {
         assert!(
-            self.seg_input.is_empty()
-                || self.seg_input.len() == self.positions.len() * field.seg_input_dim(),
+            self.seg_input.is_empty() || self.seg_input.len() == self.positions.len() * field.seg_input_dim(),
             "head_pass: the kept segmentation input is not [n, seg_input_dim]"
         );
     }
@@ -119,19 +110,12 @@ fn over_chunks(
 
 /// Logits of every sample, `[n, outputs]`, without a tape.
 pub fn sample_logits(field: &dyn RadianceField, head: &SegHead, positions: &[Vec3]) -> Vec<f32> {
-    over_chunks(field, head, HeadSamples::at(positions), |_, x, n| {
-        head.infer(x, n)
-    })
+    over_chunks(field, head, HeadSamples::at(positions), |_, x, n| head.infer(x, n))
 }
 
 /// Logits of every sample, `[n, outputs]`, keeping the chunks' tapes in `tapes` when they fit
 /// its budget, for [`backward`].
-pub fn forward(
-    field: &dyn RadianceField,
-    head: &SegHead,
-    samples: HeadSamples,
-    tapes: &mut HeadTapes,
-) -> Vec<f32> {
+pub fn forward(field: &dyn RadianceField, head: &SegHead, samples: HeadSamples, tapes: &mut HeadTapes) -> Vec<f32> {
     tapes.used = 0;
     if !tapes.fits(field, head, samples.positions.len()) {
         return over_chunks(field, head, samples, |_, x, n| head.infer(x, n));
@@ -160,16 +144,9 @@ pub fn backward(
     samples.check(field);
     let d = head.outputs();
     let n = samples.positions.len();
-    assert_eq!(
-        grad_logits.len(),
-        n * d,
-        "head_pass::backward: gradient is not [n, outputs]"
-    );
+    assert_eq!(grad_logits.len(), n * d, "head_pass::backward: gradient is not [n, outputs]");
     let taped = tapes.used > 0;
-    assert!(
-        !taped || tapes.used == n.div_ceil(CHUNK),
-        "head_pass::backward: the tapes are from another batch"
-    );
+    assert!(!taped || tapes.used == n.div_ceil(CHUNK), "head_pass::backward: the tapes are from another batch");
     let mut buffer = Vec::new();
     for (i, grad) in grad_logits.chunks(CHUNK * d).enumerate() {
         // Samples that no loss reaches (weight below every threshold) need no pass at all.
@@ -255,27 +232,15 @@ mod tests {
         let moved: Vec<Vec3> = positions.iter().map(|p| [p[0] + 1.0, p[1], p[2]]).collect();
         // Kept tapes (reused over two passes, the first on a larger batch) and recomputed ones,
         // each with the input computed here and with the input a render kept.
-        for (budget, kept_input) in [
-            (TAPE_BUDGET, false),
-            (0, false),
-            (TAPE_BUDGET, true),
-            (0, true),
-        ] {
+        for (budget, kept_input) in [(TAPE_BUDGET, false), (0, false), (TAPE_BUDGET, true), (0, true)] {
             let mut chunked = head.clone();
             let mut tapes = HeadTapes::with_budget(budget);
-            let more: Vec<Vec3> = positions
-                .iter()
-                .chain(&positions[..CHUNK])
-                .copied()
-                .collect();
+            let more: Vec<Vec3> = positions.iter().chain(&positions[..CHUNK]).copied().collect();
             forward(&field, &chunked, HeadSamples::at(&more), &mut tapes);
             // The kept input must be used as given: its positions are moved, so recomputing
             // from them would give other logits.
             let samples = if kept_input {
-                HeadSamples {
-                    positions: &moved,
-                    seg_input: &input,
-                }
+                HeadSamples { positions: &moved, seg_input: &input }
             } else {
                 HeadSamples::at(&positions)
             };

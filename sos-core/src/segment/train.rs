@@ -163,12 +163,8 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
         // Head on the surviving samples, then logits composited with the field's weights.
         let n_samples = r.samples.len();
         let t_field = timer.elapsed().as_secs_f64();
-        let head_samples = HeadSamples {
-            positions: &r.samples.positions,
-            seg_input: &r.seg_input,
-        };
-        let sample_logits =
-            head_pass::forward(session.field.as_ref(), &seg.head, head_samples, &mut tapes);
+        let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
+        let sample_logits = head_pass::forward(session.field.as_ref(), &seg.head, head_samples, &mut tapes);
         let mut logits = vec![0.0f32; n_patches * d_seg * rays_per_patch];
         for ray in 0..rays.len() {
             let (patch, pix) = (ray / rays_per_patch, ray % rays_per_patch);
@@ -249,20 +245,9 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
                 }
             }
         }
-        let head_samples = HeadSamples {
-            positions: &r.samples.positions,
-            seg_input: &r.seg_input,
-        };
-        head_pass::backward(
-            session.field.as_ref(),
-            &mut seg.head,
-            head_samples,
-            &grad_sample,
-            &tapes,
-        );
-        let lr_factor = cfg
-            .final_lr_factor
-            .powf(seg.step as f32 / cfg.steps.max(1) as f32);
+        let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
+        head_pass::backward(session.field.as_ref(), &mut seg.head, head_samples, &grad_sample, &tapes);
+        let lr_factor = cfg.final_lr_factor.powf(seg.step as f32 / cfg.steps.max(1) as f32);
         seg.head.step(lr_factor);
         if std::env::var("SOS_PROFILE").is_ok() {
             eprintln!(
@@ -320,13 +305,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
 /// samples whose compositing weight is below `segment.weight_threshold` are skipped (they
 /// cannot matter), and the render keeps the field's segmentation input at the rest when it
 /// fits `seg_budget` bytes, so the head needs no second pass of the field.
-fn render_rays(
-    session: &Session,
-    rays: &RayBatch,
-    joint: bool,
-    seg_budget: usize,
-    rng: &mut impl Rng,
-) -> Rendered {
+fn render_rays(session: &Session, rays: &RayBatch, joint: bool, seg_budget: usize, rng: &mut impl Rng) -> Rendered {
     let mut options = session.render_options(false);
     let (field, ctx) = (session.field.as_ref(), session.render_context());
     let mut r = if joint {
