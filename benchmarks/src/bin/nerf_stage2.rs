@@ -14,8 +14,7 @@
 //!   samples kept;
 //! - `no-skipping`: the reference pipeline (coarse + fine, no occupancy, no termination, no
 //!   threshold) with ONE patch, as the reference's 41 s figure is for one patch (eight would
-//!   need about 9 GB for the head's inputs alone).
-//!
+//!   need about 9 GB for the head's inputs alone);
 //! - `weight-threshold-only`, `uniform-no-skipping`, `uniform-weight-threshold-only` (one
 //!   patch): the reference pipeline with weight thresholding alone, and the fine network alone
 //!   on 192 uniform candidates without skipping and with weight thresholding alone.
@@ -524,7 +523,7 @@ fn main() {
         "inference" => inference_skips(&checkpoint, steps.unwrap_or(60)),
         "weights" => weight_spread(&checkpoint),
         other => {
-            eprintln!("unknown mode `{other}`: use `speed` or `quality`");
+            eprintln!("unknown mode `{other}`: use `speed`, `quality`, `head`, `weights`, `density` or `inference`");
             std::process::exit(2);
         }
     }
