@@ -25,8 +25,9 @@ use crate::train::session::{kind_of, Session};
 const MAX_BAD_STEPS: usize = 20;
 
 /// Bytes of segmentation input a stage-2 render may keep for the head (NeRF's 319 floats for
-/// 1.7 M samples); larger batches compute it again in the head pass.
-const SEG_INPUT_BUDGET: usize = 2 << 30;
+/// 3.4 M samples); larger batches compute it again in the head pass, twice (forward and
+/// backward), which for NeRF is two more trunk passes.
+const SEG_INPUT_BUDGET: usize = 4 << 30;
 
 /// Offset of the patch sampler's seed from the run's (its own stream, so the patch sequence
 /// does not depend on what else a step draws).
