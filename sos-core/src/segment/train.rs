@@ -246,7 +246,6 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
                 }
             }
         }
-        let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
         head_pass::backward(session.field.as_ref(), &mut seg.head, head_samples, &grad_sample, &tapes);
         let lr_factor = cfg.final_lr_factor.powf(seg.step as f32 / cfg.steps.max(1) as f32);
         seg.head.step(lr_factor);
