@@ -162,6 +162,16 @@ impl Mlp {
     /// # Shapes
     /// `x`: `[n, in_dim]`; returns `[n, out_dim]`.
     pub fn forward_into(&self, x: &[f32], n: usize, tape: &mut MlpTape) -> Vec<f32> {
+        self.record(x, n, tape, true)
+    }
+
+    /// [`Mlp::forward_into`] without a copy of the input in the tape, for callers that keep
+    /// `x` until the backward pass anyway: pass it again to [`Mlp::backward_with_input`].
+    pub fn forward_into_without_input(&self, x: &[f32], n: usize, tape: &mut MlpTape) -> Vec<f32> {
+        self.record(x, n, tape, false)
+    }
+
+    fn record(&self, x: &[f32], n: usize, tape: &mut MlpTape, copy_input: bool) -> Vec<f32> {
         assert_eq!(
             x.len(),
             n * self.in_dim(),
@@ -170,7 +180,9 @@ impl Mlp {
         let num_layers = self.layers.len();
         tape.n = n;
         tape.input.clear();
-        tape.input.extend_from_slice(x);
+        if copy_input {
+            tape.input.extend_from_slice(x);
+        }
         tape.hidden.resize_with(num_layers - 1, Vec::new);
         let mut out = Vec::new();
         for (l, layer) in self.layers.iter().enumerate() {
@@ -243,6 +255,16 @@ impl Mlp {
     /// # Shapes
     /// `dy`: `[n, out_dim]` with `n = tape.batch_size()`; returns `[n, in_dim]`.
     pub fn backward(&mut self, tape: &MlpTape, dy: &[f32], want_dx: bool) -> Option<Vec<f32>> {
+        self.backward_from(tape, &tape.input, dy, want_dx)
+    }
+
+    /// [`Mlp::backward`] for a tape recorded by [`Mlp::forward_into_without_input`], with the
+    /// same input `x` it was given.
+    pub fn backward_with_input(&mut self, tape: &MlpTape, x: &[f32], dy: &[f32], want_dx: bool) -> Option<Vec<f32>> {
+        self.backward_from(tape, x, dy, want_dx)
+    }
+
+    fn backward_from(&mut self, tape: &MlpTape, input: &[f32], dy: &[f32], want_dx: bool) -> Option<Vec<f32>> {
         let n = tape.n;
         let (in_dim, out_dim) = (self.in_dim(), self.out_dim());
         let num_layers = self.layers.len();
@@ -252,9 +274,9 @@ impl Mlp {
             "Mlp::backward: dy is not [n, out_dim]"
         );
         assert_eq!(
-            tape.input.len(),
+            input.len(),
             n * in_dim,
-            "Mlp::backward: tape from another network"
+            "Mlp::backward: input (or tape) from another network or batch"
         );
         assert_eq!(
             tape.hidden.len(),
@@ -301,7 +323,7 @@ impl Mlp {
             };
             let g = MatRef::new(g_data, n, width);
             let prev: &[f32] = if l == 0 { &[] } else { &tape.hidden[l - 1] };
-            let blocks = self.blocks(l, &tape.input, prev, n);
+            let blocks = self.blocks(l, input, prev, n);
             let dprev = &mut nxt[..prev.len()];
             let layer = &mut self.layers[l];
             if l == 0 {
@@ -341,6 +363,29 @@ mod tests {
 
     fn dot(y: &[f32], r: &[f32]) -> f64 {
         y.iter().zip(r).map(|(&a, &b)| a as f64 * b as f64).sum()
+    }
+
+    /// A tape without its input, given the input again, gives the same outputs and gradients
+    /// bit for bit; given another input, other gradients.
+    #[test]
+    fn tape_without_input_matches_the_full_tape() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mlp = Mlp::new(&[6, 8, 3], Activation::Relu, Activation::Identity, &mut rng);
+        let n = 40;
+        let x: Vec<f32> = (0..n * 6).map(|i| ((i * 31 % 17) as f32 / 17.0) - 0.4).collect();
+        let dy: Vec<f32> = (0..n * 3).map(|i| ((i * 7 % 11) as f32 / 11.0) - 0.5).collect();
+        let grads = |m: &mut Mlp| m.params_mut().iter().flat_map(|p| p.grad.clone()).collect::<Vec<f32>>();
+        let (mut full, mut lean, mut other) = (mlp.clone(), mlp.clone(), mlp.clone());
+        let (mut t1, mut t2) = (MlpTape::default(), MlpTape::default());
+        let y1 = full.forward_into(&x, n, &mut t1);
+        let y2 = lean.forward_into_without_input(&x, n, &mut t2);
+        assert_eq!(y1, y2);
+        let dx1 = full.backward(&t1, &dy, true);
+        let dx2 = lean.backward_with_input(&t2, &x, &dy, true);
+        assert_eq!((dx1, grads(&mut full)), (dx2, grads(&mut lean)));
+        let moved: Vec<f32> = x.iter().map(|v| v + 0.5).collect();
+        other.backward_with_input(&t2, &moved, &dy, false);
+        assert_ne!(grads(&mut other), grads(&mut full), "the given input is the one used");
     }
 
     /// Gradients of `L = Σ y ⊙ r` w.r.t. every weight, bias and input against central

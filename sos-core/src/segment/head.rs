@@ -51,6 +51,17 @@ impl SegHead {
         self.mlp.backward(tape, grad_logits, false);
     }
 
+    /// [`SegHead::forward_into`] without a copy of `input` in the tape (see
+    /// [`crate::nn::Mlp::forward_into_without_input`]).
+    pub fn forward_into_without_input(&self, input: &[f32], n: usize, tape: &mut MlpTape) -> Vec<f32> {
+        self.mlp.forward_into_without_input(input, n, tape)
+    }
+
+    /// [`SegHead::backward`] for a tape without its input, given that input again.
+    pub fn backward_with_input(&mut self, tape: &MlpTape, input: &[f32], grad_logits: &[f32]) {
+        self.mlp.backward_with_input(tape, input, grad_logits, false);
+    }
+
     /// Applies the accumulated gradients.
     pub fn step(&mut self, lr_factor: f32) {
         let mut params = self.mlp.params_mut();

@@ -46,10 +46,12 @@ impl HeadTapes {
         HeadTapes { tapes: Vec::new(), used: 0, budget }
     }
 
-    fn fits(&self, field: &dyn RadianceField, head: &SegHead, samples: usize) -> bool {
+    /// Whether the tapes of `samples` fit the budget; with `input_kept`, the tapes hold no copy
+    /// of the input (the caller keeps it until the backward pass).
+    fn fits(&self, field: &dyn RadianceField, head: &SegHead, samples: usize, input_kept: bool) -> bool {
         let layers = &head.mlp.layers;
         let hidden: usize = layers[..layers.len() - 1].iter().map(|l| l.out_dim).sum();
-        let per_sample = field.seg_input_dim() + hidden;
+        let per_sample = if input_kept { hidden } else { field.seg_input_dim() + hidden };
         samples.saturating_mul(per_sample * std::mem::size_of::<f32>()) <= self.budget
     }
 }
@@ -118,7 +120,8 @@ pub fn sample_logits(field: &dyn RadianceField, head: &SegHead, positions: &[Vec
 /// its budget, for [`backward`].
 pub fn forward(field: &dyn RadianceField, head: &SegHead, samples: HeadSamples, tapes: &mut HeadTapes) -> Vec<f32> {
     tapes.used = 0;
-    if !tapes.fits(field, head, samples.positions.len()) {
+    let input_kept = !samples.seg_input.is_empty();
+    if !tapes.fits(field, head, samples.positions.len(), input_kept) {
         return over_chunks(field, head, samples, |_, x, n| head.infer(x, n));
     }
     let kept = &mut tapes.tapes;
@@ -126,7 +129,11 @@ pub fn forward(field: &dyn RadianceField, head: &SegHead, samples: HeadSamples, 
         if i == kept.len() {
             kept.push(MlpTape::default());
         }
-        head.forward_into(x, n, &mut kept[i])
+        if input_kept {
+            head.forward_into_without_input(x, n, &mut kept[i])
+        } else {
+            head.forward_into(x, n, &mut kept[i])
+        }
     });
     tapes.used = samples.positions.len().div_ceil(CHUNK);
     logits
@@ -155,7 +162,12 @@ pub fn backward(
             continue;
         }
         if taped {
-            head.backward(&tapes.tapes[i], grad);
+            if samples.seg_input.is_empty() {
+                head.backward(&tapes.tapes[i], grad);
+            } else {
+                let x = samples.chunk_input(field, i, &mut buffer);
+                head.backward_with_input(&tapes.tapes[i], x, grad);
+            }
         } else {
             let x = samples.chunk_input(field, i, &mut buffer);
             let (_, tape) = head.forward(x, grad.len() / d);
