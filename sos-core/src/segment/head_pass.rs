@@ -21,8 +21,9 @@ use crate::segment::head::SegHead;
 const CHUNK: usize = 8192;
 
 /// Bytes of tapes a step may keep (a million samples of a 43-wide input and a 128-wide
-/// hidden layer take 0.7 GB; NeRF's 319-wide input, 1.8 GB). Together with the render's
-/// segmentation input this keeps a foggy NeRF's 8-patch step (2.5 M samples) under 10 GB.
+/// hidden layer take 0.7 GB; NeRF's 319-wide input, 1.8 GB). When the render kept the input,
+/// the tapes hold only the hidden layer: a foggy NeRF's 8-patch step (2.5–3 M samples) peaks
+/// at 6 GB.
 pub const TAPE_BUDGET: usize = 6 << 30;
 
 /// The per-chunk tapes of the last forward pass, reused from step to step.
