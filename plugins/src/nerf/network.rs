@@ -332,7 +332,6 @@ impl NerfMlp {
             }
             let mut sigma_raw = vec![0.0; n];
             self.sigma.forward(&h, n, &mut sigma_raw);
-            let w = self.width();
             let mut feat = vec![0.0; n * w];
             self.feature.forward(&h, n, &mut feat);
             let vw = self.view.out_dim;

@@ -151,6 +151,15 @@ impl Level for NerfPpNet {
     }
 }
 
+/// Writes one network's density (times its sample's density scale) and colour, one per sample
+/// of `idx`, into those samples' places of `density` and `rgb`.
+fn scatter_density_colour(idx: &[u32], scale: &[f32], d: &[f32], c: &[[f32; 3]], density: &mut [f32], rgb: &mut [[f32; 3]]) {
+    for (j, &i) in idx.iter().enumerate() {
+        density[i as usize] = d[j] * scale[j];
+        rgb[i as usize] = c[j];
+    }
+}
+
 impl NerfPpNet {
     /// Writes the trunk part of `net`'s segmentation input rows `features` (one per sample of
     /// `idx`) into those samples' rows of `out` `[n, seg_input_dim]`.
@@ -202,10 +211,7 @@ impl RadianceField for NerfPpNet {
         for (net, idx, coords, scale) in self.parts(&s) {
             let (mut d, mut c) = (vec![0.0; idx.len()], vec![[0.0; 3]; idx.len()]);
             tapes.push(net.forward(coords, &gather(directions, idx), &mut d, &mut c, record));
-            for (j, &i) in idx.iter().enumerate() {
-                density[i as usize] = d[j] * scale[j];
-                rgb[i as usize] = c[j];
-            }
+            scatter_density_colour(idx, scale, &d, &c, density, rgb);
         }
         if !record {
             return None;
@@ -296,10 +302,7 @@ impl RadianceField for NerfPpNet {
             let (mut d, mut c) = (vec![0.0; idx.len()], vec![[0.0; 3]; idx.len()]);
             let mut f = vec![0.0; idx.len() * (net.width() + net.pe_dim())];
             net.forward_with_features(coords, &gather(directions, idx), &mut d, &mut c, &mut f);
-            for (j, &i) in idx.iter().enumerate() {
-                density[i as usize] = d[j] * scale[j];
-                rgb[i as usize] = c[j];
-            }
+            scatter_density_colour(idx, scale, &d, &c, density, rgb);
             self.scatter_features(net, idx, &f, seg_input);
         }
         self.encode_positions(positions, seg_input);

@@ -77,12 +77,17 @@ impl<'a> HeadSamples<'a> {
     fn chunk_input<'b>(&'b self, field: &dyn RadianceField, i: usize, buffer: &'b mut Vec<f32>) -> &'b [f32] {
         let dim = field.seg_input_dim();
         let chunk = &self.positions[i * CHUNK..((i + 1) * CHUNK).min(self.positions.len())];
-        if !self.seg_input.is_empty() {
+        if self.input_kept() {
             return &self.seg_input[i * CHUNK * dim..][..chunk.len() * dim];
         }
         buffer.resize(chunk.len() * dim, 0.0);
         field.seg_input(chunk, buffer);
         buffer
+    }
+
+    /// Whether the render kept the input (else it is computed chunk by chunk).
+    fn input_kept(&self) -> bool {
+        !self.seg_input.is_empty()
     }
 
     fn check(&self, field: &dyn RadianceField) {
@@ -121,7 +126,7 @@ pub fn sample_logits(field: &dyn RadianceField, head: &SegHead, positions: &[Vec
 /// its budget, for [`backward`].
 pub fn forward(field: &dyn RadianceField, head: &SegHead, samples: HeadSamples, tapes: &mut HeadTapes) -> Vec<f32> {
     tapes.used = 0;
-    let input_kept = !samples.seg_input.is_empty();
+    let input_kept = samples.input_kept();
     if !tapes.fits(field, head, samples.positions.len(), input_kept) {
         return over_chunks(field, head, samples, |_, x, n| head.infer(x, n));
     }
@@ -163,11 +168,11 @@ pub fn backward(
             continue;
         }
         if taped {
-            if samples.seg_input.is_empty() {
-                head.backward(&tapes.tapes[i], grad);
-            } else {
+            if samples.input_kept() {
                 let x = samples.chunk_input(field, i, &mut buffer);
                 head.backward_with_input(&tapes.tapes[i], x, grad);
+            } else {
+                head.backward(&tapes.tapes[i], grad);
             }
         } else {
             let x = samples.chunk_input(field, i, &mut buffer);
