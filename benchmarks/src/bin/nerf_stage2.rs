@@ -332,7 +332,7 @@ fn head_phase(checkpoint: &Path, repeats: usize) {
     use rand::{Rng, SeedableRng};
     use sos_core::config::HeadConfig;
     use sos_core::render::rays::PatchGrid;
-    use sos_core::render::renderer::render_with_seg_input;
+    use sos_core::render::renderer::{render_with_seg_input, FrozenBuffers};
     use sos_core::segment::head::SegHead;
     use sos_core::segment::patches::{patch_rays, Patch};
     let modes = selected_modes(&[
@@ -363,6 +363,7 @@ fn head_phase(checkpoint: &Path, repeats: usize) {
         let mut head = SegHead::new(&HeadConfig::default(), dim, 1e-3, 0);
         let (mut render_s, mut head_s, mut again_s) = (Vec::new(), Vec::new(), Vec::new());
         let mut per_ray = 0.0;
+        let mut buffers = FrozenBuffers::default();
         for _ in 0..repeats {
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
             let t = Instant::now();
@@ -372,6 +373,7 @@ fn head_phase(checkpoint: &Path, repeats: usize) {
                 &rays,
                 options,
                 usize::MAX,
+                &mut buffers,
                 &mut rng,
             );
             r.composite();
@@ -387,6 +389,7 @@ fn head_phase(checkpoint: &Path, repeats: usize) {
             let mut input = vec![0.0; n * dim];
             session.field.seg_input(&r.samples.positions, &mut input);
             again_s.push(t.elapsed().as_secs_f64());
+            buffers.recycle(&mut r);
         }
         println!(
             "| {} | {:.1} | {:.3} | {:.3} | {:.3} | {} |",

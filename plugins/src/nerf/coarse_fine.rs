@@ -116,6 +116,26 @@ impl<L: Level> RadianceField for CoarseFine<L> {
         self.fine.forward_with_seg_input(p, d, density, rgb, seg);
     }
 
+    fn density_state_dim(&self) -> usize {
+        self.fine.density_state_dim()
+    }
+
+    fn density_with_state(&self, p: &[Vec3], density: &mut [f32], state: &mut [f32]) {
+        self.fine.density_with_state(p, density, state);
+    }
+
+    fn colour_from_state(
+        &self,
+        p: &[Vec3],
+        d: &[Vec3],
+        state: &[f32],
+        rows: &[u32],
+        rgb: &mut [[f32; 3]],
+        seg: Option<&mut [f32]>,
+    ) {
+        self.fine.colour_from_state(p, d, state, rows, rgb, seg);
+    }
+
     fn save_state(&self) -> Vec<u8> {
         let nets: Vec<&NerfMlp> = self.fine.mlps().into_iter().chain(self.coarse.mlps()).collect();
         write_params(&nets)

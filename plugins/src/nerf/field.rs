@@ -125,6 +125,27 @@ impl RadianceField for NerfNet {
         self.mlp.forward_with_features(&self.coords(positions), directions, density, rgb, seg_input);
     }
 
+    fn density_state_dim(&self) -> usize {
+        self.mlp.width()
+    }
+
+    fn density_with_state(&self, positions: &[Vec3], density: &mut [f32], state: &mut [f32]) {
+        self.mlp.density_with_trunk(&self.coords(positions), density, state);
+    }
+
+    fn colour_from_state(
+        &self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        state: &[f32],
+        rows: &[u32],
+        rgb: &mut [[f32; 3]],
+        seg_input: Option<&mut [f32]>,
+    ) {
+        let coords = if seg_input.is_some() { self.coords(positions) } else { Vec::new() };
+        self.mlp.colour_from_trunk(state, rows, &coords, directions, rgb, seg_input);
+    }
+
     fn save_state(&self) -> Vec<u8> {
         write_params(&[&self.mlp])
     }

@@ -176,6 +176,20 @@ fn join_rows(h: &[f32], w: usize, pe: &[f32], pe_dim: usize, out: &mut [f32]) {
     });
 }
 
+/// `Σ a_k b_k` in eight interleaved partial sums added in a fixed order (vectorises, and
+/// rounds the same wherever the row sits).
+fn dot(a: &[f32], b: &[f32]) -> f32 {
+    let mut lanes = [0.0f32; 8];
+    let (a8, b8) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f32 = a8.remainder().iter().zip(b8.remainder()).map(|(x, y)| x * y).sum();
+    for (x, y) in a8.zip(b8) {
+        for k in 0..8 {
+            lanes[k] += x[k] * y[k];
+        }
+    }
+    lanes.iter().sum::<f32>() + tail
+}
+
 fn relu_in_place(x: &mut [f32]) {
     x.par_chunks_mut(1 << 14).for_each(|c| c.iter_mut().for_each(|v| *v = v.max(0.0)));
 }
@@ -244,17 +258,94 @@ impl NerfMlp {
 
     /// Density only (the trunk and the density head), for `coords` `[n, in_dim]`.
     pub fn density(&self, coords: &[f32], out: &mut [f32]) {
-        let d = self.in_dim;
-        for (x, o) in coords.chunks(CHUNK * d).zip(out.chunks_mut(CHUNK)) {
+        self.density_impl(coords, out, None);
+    }
+
+    /// [`NerfMlp::density`] that also writes the final trunk activations `[n, width]`, from
+    /// which [`NerfMlp::colour_from_trunk`] finishes the forward pass without the trunk.
+    pub fn density_with_trunk(&self, coords: &[f32], out: &mut [f32], trunk: &mut [f32]) {
+        self.density_impl(coords, out, Some(trunk));
+    }
+
+    fn density_impl(&self, coords: &[f32], out: &mut [f32], mut trunk: Option<&mut [f32]>) {
+        let (d, w) = (self.in_dim, self.width());
+        for (block, (x, o)) in coords.chunks(CHUNK * d).zip(out.chunks_mut(CHUNK)).enumerate() {
             let n = o.len();
             let pe = encode(x, d, self.pos_frequencies);
             let h = self.trunk_block(&pe, n);
-            let mut raw = vec![0.0; n];
-            self.sigma.forward(&h, n, &mut raw);
+            let raw = self.raw_density(&h);
             for (o, r) in o.iter_mut().zip(&raw) {
                 *o = self.density_activation.apply(*r);
             }
+            if let Some(t) = trunk.as_deref_mut() {
+                t[block * CHUNK * w..][..n * w].copy_from_slice(&h);
+            }
         }
+    }
+
+    /// Colour of points whose final trunk activations are rows `rows[j]` of `trunk` (as
+    /// [`NerfMlp::density_with_trunk`] wrote them), and with `features` their segmentation
+    /// input of [`NerfMlp::features`] (which reads `coords`; pass none without it): the rest
+    /// of [`NerfMlp::forward`], equal to its outputs.
+    pub fn colour_from_trunk(
+        &self,
+        trunk: &[f32],
+        rows: &[u32],
+        coords: &[f32],
+        dirs: &[Vec3],
+        rgb: &mut [[f32; 3]],
+        mut features: Option<&mut [f32]>,
+    ) {
+        let (d, w, pe_dim) = (self.in_dim, self.width(), self.pe_dim());
+        let mut h = Vec::new();
+        for (block, ((rows, dir), col)) in rows.chunks(CHUNK).zip(dirs.chunks(CHUNK)).zip(rgb.chunks_mut(CHUNK)).enumerate() {
+            let n = rows.len();
+            h.resize(n * w, 0.0);
+            h.par_chunks_mut(w).zip(rows.par_iter()).for_each(|(out, &r)| {
+                out.copy_from_slice(&trunk[r as usize * w..][..w]);
+            });
+            let pe_d = encode_dirs(dir, self.dir_frequencies);
+            let (_, _, c) = self.view_branch(&h, &pe_d, n);
+            for (i, col) in col.iter_mut().enumerate() {
+                *col = [c[3 * i], c[3 * i + 1], c[3 * i + 2]];
+            }
+            if let Some(out) = features.as_deref_mut() {
+                let row = w + pe_dim;
+                let pe = encode(&coords[block * CHUNK * d..][..n * d], d, self.pos_frequencies);
+                join_rows(&h, w, &pe, pe_dim, &mut out[block * CHUNK * row..][..n * row]);
+            }
+        }
+    }
+
+    /// The density layer on final trunk activations `h` `[n, width]`, before the activation.
+    /// Each row is summed in a fixed order of its own: a one-column GEMM rounds a row
+    /// differently depending on where it falls in the batch, and a frozen render's density
+    /// pass and colour pass batch the same sample differently.
+    fn raw_density(&self, h: &[f32]) -> Vec<f32> {
+        let w = self.width();
+        let (weight, bias) = (&self.sigma.weight.value, self.sigma.bias.value[0]);
+        let mut out = vec![0.0; h.len() / w];
+        out.par_chunks_mut(1024).zip(h.par_chunks(1024 * w)).for_each(|(out, h)| {
+            for (o, row) in out.iter_mut().zip(h.chunks_exact(w)) {
+                *o = bias + dot(row, weight);
+            }
+        });
+        out
+    }
+
+    /// The view branch of one block: the feature layer, the view layer over
+    /// `[feature, PE(d)]` and the colour layer, from final trunk activations `h` `[n, width]`.
+    /// Returns `(feature, view activations, rgb)` for the tape.
+    fn view_branch(&self, h: &[f32], pe_d: &[f32], n: usize) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let w = self.width();
+        let mut feat = vec![0.0; n * w];
+        self.feature.forward(h, n, &mut feat);
+        let mut hv = vec![0.0; n * self.view.out_dim];
+        let blocks_in = [MatRef::new(&feat, n, w), MatRef::new(pe_d, n, self.view.in_dim - w)];
+        self.view.forward_blocks(&blocks_in, &mut hv, Activation::Relu);
+        let mut c = vec![0.0; n * 3];
+        self.rgb.forward_act(&hv, n, &mut c, Activation::Sigmoid);
+        (feat, hv, c)
     }
 
     /// Segmentation input `[n, width + pe_dim]`: the final trunk activations followed by the
@@ -330,16 +421,8 @@ impl NerfMlp {
                 let out = &mut out[block * CHUNK * row..][..n * row];
                 join_rows(&h, w, &pe, pe_dim, out);
             }
-            let mut sigma_raw = vec![0.0; n];
-            self.sigma.forward(&h, n, &mut sigma_raw);
-            let mut feat = vec![0.0; n * w];
-            self.feature.forward(&h, n, &mut feat);
-            let vw = self.view.out_dim;
-            let mut hv = vec![0.0; n * vw];
-            let blocks_in = [MatRef::new(&feat, n, w), MatRef::new(&pe_d, n, self.view.in_dim - w)];
-            self.view.forward_blocks(&blocks_in, &mut hv, Activation::Relu);
-            let mut c = vec![0.0; n * 3];
-            self.rgb.forward_act(&hv, n, &mut c, Activation::Sigmoid);
+            let sigma_raw = self.raw_density(&h);
+            let (feat, hv, c) = self.view_branch(&h, &pe_d, n);
             for i in 0..n {
                 dens[i] = self.density_activation.apply(sigma_raw[i]);
                 col[i] = [c[3 * i], c[3 * i + 1], c[3 * i + 2]];
@@ -512,6 +595,40 @@ mod tests {
         let (mut d4, mut c4) = (vec![0.0; n], vec![[0.0; 3]; n]);
         assert!(m.forward(&coords, &dirs, &mut d4, &mut c4, false).is_none());
         assert_eq!((d3, c3, f3), (d4, c4, f));
+    }
+
+    /// Density with the trunk kept, then colour from chosen trunk rows, equals a forward pass
+    /// over those points bit for bit (rows from one batch serve another batch's order).
+    #[test]
+    fn colour_from_kept_trunk_rows_matches_forward() {
+        let shape = NerfShape { in_dim: 3, pos_frequencies: 3, dir_frequencies: 2, depth: 3, width: 8, skip: Some(2), view_width: 4 };
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let m = NerfMlp::new(shape, DensityActivation::Softplus, &mut rng);
+        let n = 2 * CHUNK + 37;
+        let coords: Vec<f32> = (0..n * 3).map(|_| rng.gen_range(-1.0..1.0)).collect();
+        let dirs: Vec<Vec3> = (0..n).map(|_| [rng.gen_range(-1.0..1.0), 0.6, 0.8]).collect();
+        let mut density = vec![0.0; n];
+        let mut trunk = vec![f32::NAN; n * 8];
+        m.density_with_trunk(&coords, &mut density, &mut trunk);
+        let mut plain = vec![0.0; n];
+        m.density(&coords, &mut plain);
+        assert_eq!(density, plain);
+        // Every third point, last first, more than one block of them.
+        let rows: Vec<u32> = (0..n as u32).rev().filter(|i| i % 3 != 1).collect();
+        let k = rows.len();
+        assert!(k > CHUNK);
+        let sub_coords: Vec<f32> = rows.iter().flat_map(|&i| coords[3 * i as usize..][..3].to_vec()).collect();
+        let sub_dirs: Vec<Vec3> = rows.iter().map(|&i| dirs[i as usize]).collect();
+        let row = 8 + shape.pe_dim();
+        let (mut d, mut c, mut f) = (vec![0.0; k], vec![[0.0; 3]; k], vec![0.0; k * row]);
+        m.forward_with_features(&sub_coords, &sub_dirs, &mut d, &mut c, &mut f);
+        let (mut c2, mut f2) = (vec![[0.0; 3]; k], vec![f32::NAN; k * row]);
+        m.colour_from_trunk(&trunk, &rows, &sub_coords, &sub_dirs, &mut c2, Some(&mut f2));
+        let d2: Vec<f32> = rows.iter().map(|&i| density[i as usize]).collect();
+        assert_eq!((d2, &c2, f2), (d, &c, f));
+        let mut c3 = vec![[0.0; 3]; k];
+        m.colour_from_trunk(&trunk, &rows, &[], &sub_dirs, &mut c3, None);
+        assert_eq!(c3, c);
     }
 
     #[test]

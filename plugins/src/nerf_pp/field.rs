@@ -308,6 +308,55 @@ impl RadianceField for NerfPpNet {
         self.encode_positions(positions, seg_input);
     }
 
+    fn density_state_dim(&self) -> usize {
+        // Both networks' trunks are `width` wide (the segmentation input relies on it too).
+        self.fg.width()
+    }
+
+    fn density_with_state(&self, positions: &[Vec3], density: &mut [f32], state: &mut [f32]) {
+        let w = self.fg.width();
+        density.fill(0.0);
+        // Points beyond the sphere without a background keep a zero trunk, as in their
+        // segmentation input.
+        state.fill(0.0);
+        let s = self.split(positions);
+        for (net, idx, coords, scale) in self.parts(&s) {
+            let (mut d, mut h) = (vec![0.0; idx.len()], vec![0.0; idx.len() * w]);
+            net.density_with_trunk(coords, &mut d, &mut h);
+            for (j, &i) in idx.iter().enumerate() {
+                density[i as usize] = d[j] * scale[j];
+                state[i as usize * w..][..w].copy_from_slice(&h[j * w..][..w]);
+            }
+        }
+    }
+
+    fn colour_from_state(
+        &self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        state: &[f32],
+        rows: &[u32],
+        rgb: &mut [[f32; 3]],
+        seg_input: Option<&mut [f32]>,
+    ) {
+        rgb.fill([0.0; 3]);
+        let s = self.split(positions);
+        for (net, idx, _, _) in self.parts(&s) {
+            let mut c = vec![[0.0; 3]; idx.len()];
+            net.colour_from_trunk(state, &gather(rows, idx), &[], &gather(directions, idx), &mut c, None);
+            for (j, &i) in idx.iter().enumerate() {
+                rgb[i as usize] = c[j];
+            }
+        }
+        if let Some(seg) = seg_input {
+            let (w, dim) = (self.fg.width(), self.seg_input_dim());
+            for (out, &r) in seg.chunks_exact_mut(dim).zip(rows) {
+                out[..w].copy_from_slice(&state[r as usize * w..][..w]);
+            }
+            self.encode_positions(positions, seg);
+        }
+    }
+
     fn save_state(&self) -> Vec<u8> {
         write_params(&self.mlps())
     }
@@ -456,6 +505,30 @@ mod tests {
             net.seg_input(&positions, &mut seg);
             let (mut d2, mut c2, mut seg2) = (vec![f32::NAN; 4], vec![[f32::NAN; 3]; 4], vec![f32::NAN; 4 * dim]);
             net.forward_with_seg_input(&positions, &dirs, &mut d2, &mut c2, &mut seg2);
+            assert_eq!((d2, c2, seg2), (d, c, seg));
+        }
+    }
+
+    /// Density with the trunks kept, then colour and segmentation input from chosen rows,
+    /// equal the fused pass over those points (empty points beyond the sphere included).
+    #[test]
+    fn colour_from_the_density_pass_state_matches_the_fused_pass() {
+        let f = NerfPpNet::new(&tiny(), sphere_space(false), 3);
+        let g = NerfPpNet::new(&tiny(), sphere_space(true), 3);
+        let positions = vec![[1.5, 0.3, -0.4], [1.0, 6.0, 2.0], [0.2, -0.9, 0.7], [-9.0, 1.0, 3.0], [2.0, 0.5, 0.1]];
+        let dirs = vec![[0.0, 0.6, 0.8], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [-0.6, 0.0, 0.8], [0.0, 0.0, 1.0]];
+        let rows: Vec<u32> = vec![4, 1, 3, 0];
+        let sub_p: Vec<Vec3> = rows.iter().map(|&r| positions[r as usize]).collect();
+        let sub_d: Vec<Vec3> = rows.iter().map(|&r| dirs[r as usize]).collect();
+        for net in [&f, &g] {
+            let (dim, w) = (net.seg_input_dim(), net.density_state_dim());
+            let (mut density, mut state) = (vec![f32::NAN; 5], vec![f32::NAN; 5 * w]);
+            net.density_with_state(&positions, &mut density, &mut state);
+            let (mut d, mut c, mut seg) = (vec![0.0; 4], vec![[0.0; 3]; 4], vec![0.0; 4 * dim]);
+            net.forward_with_seg_input(&sub_p, &sub_d, &mut d, &mut c, &mut seg);
+            let (mut c2, mut seg2) = (vec![[f32::NAN; 3]; 4], vec![f32::NAN; 4 * dim]);
+            net.colour_from_state(&sub_p, &sub_d, &state, &rows, &mut c2, Some(&mut seg2));
+            let d2: Vec<f32> = rows.iter().map(|&r| density[r as usize]).collect();
             assert_eq!((d2, c2, seg2), (d, c, seg));
         }
     }

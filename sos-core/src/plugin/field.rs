@@ -129,6 +129,43 @@ pub trait RadianceField: Send + Sync {
         self.seg_input(positions, seg_input);
     }
 
+    /// Width of the per-sample state that [`RadianceField::density_with_state`] writes so that
+    /// [`RadianceField::colour_from_state`] needs no second pass of the density network (NeRF's
+    /// final trunk activations); 0, the default, for fields that keep none. A frozen render
+    /// with a density pass (early termination, weight threshold) then evaluates the network's
+    /// trunk once per kept sample instead of twice.
+    fn density_state_dim(&self) -> usize {
+        0
+    }
+
+    /// [`RadianceField::density`] that also writes each sample's state,
+    /// `state[n * density_state_dim]`. Only called when [`RadianceField::density_state_dim`]
+    /// is positive.
+    fn density_with_state(&self, positions: &[Vec3], density: &mut [f32], state: &mut [f32]) {
+        debug_assert!(state.is_empty(), "a field with state must override density_with_state");
+        self.density(positions, density);
+    }
+
+    /// Colour, and the segmentation input when `seg_input` is given, of samples whose state an
+    /// earlier [`RadianceField::density_with_state`] wrote: sample `j` reads state row
+    /// `rows[j]`. Equal to the matching outputs of [`RadianceField::forward`] and
+    /// [`RadianceField::seg_input`]; the default recomputes them that way.
+    fn colour_from_state(
+        &self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        _state: &[f32],
+        _rows: &[u32],
+        rgb: &mut [[f32; 3]],
+        seg_input: Option<&mut [f32]>,
+    ) {
+        let mut density = vec![0.0; positions.len()];
+        self.forward(positions, directions, &mut density, rgb, false);
+        if let Some(seg) = seg_input {
+            self.seg_input(positions, seg);
+        }
+    }
+
     /// Serialises all parameters (checkpoints).
     fn save_state(&self) -> Vec<u8>;
 

@@ -2,6 +2,7 @@
 
 pub mod composite;
 pub mod contraction;
+pub mod density_pass;
 pub mod occupancy;
 pub mod rays;
 pub mod renderer;

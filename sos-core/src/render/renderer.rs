@@ -15,6 +15,7 @@ use crate::plugin::field::Hierarchical;
 use crate::plugin::{FieldTape, RadianceField};
 use crate::render::composite::{self, RayColor, RayGrad, RaySamples};
 use crate::render::contraction::Contraction;
+use crate::render::density_pass::{density_pass, KeptState};
 use crate::render::occupancy::OccupancyGrid;
 use crate::render::rays::RayBatch;
 use crate::render::sampler::{self, MarchOptions, Samples};
@@ -22,6 +23,10 @@ use crate::scene::SceneExtent;
 
 /// Rays per parallel marching task.
 const MARCH_CHUNK: usize = 256;
+
+/// Most bytes of field state ([`RadianceField::density_state_dim`]) a frozen render keeps
+/// from its density pass for the colour pass (NeRF: 1 KiB per kept sample).
+const STATE_BUDGET: usize = 4 << 30;
 
 /// How to render.
 #[derive(Debug, Clone, Copy)]
@@ -82,22 +87,54 @@ pub fn render(
     record: bool,
     rng: &mut impl Rng,
 ) -> Rendered {
-    render_impl(field, ctx, rays, options, record, 0, rng)
+    render_impl(field, ctx, rays, options, record, 0, &mut FrozenBuffers::default(), rng)
 }
 
 /// [`render`] of a frozen field (no tape) that also keeps the field's segmentation input at
 /// the surviving samples ([`Rendered::seg_input`]) when it takes at most `budget` bytes, from
 /// the same pass as density and colour where the field can (stage 2 then needs no second
-/// pass of, e.g., NeRF's trunk for its head).
+/// pass of, e.g., NeRF's trunk for its head). Its large buffers come from `buffers`; hand
+/// the segmentation input back with [`FrozenBuffers::recycle`] for the next call.
 pub fn render_with_seg_input(
     field: &dyn RadianceField,
     ctx: RenderContext,
     rays: &RayBatch,
     options: RenderOptions,
     budget: usize,
+    buffers: &mut FrozenBuffers,
     rng: &mut impl Rng,
 ) -> Rendered {
-    render_impl(field, ctx, rays, options, false, budget, rng)
+    render_impl(field, ctx, rays, options, false, budget, buffers, rng)
+}
+
+/// The large buffers of a frozen render (the field's state at the kept samples, the
+/// segmentation input: gigabytes in a stage-2 step), kept from call to call. Fresh buffers
+/// of that size come from the kernel page by page, zeroed, on every call, which costs
+/// seconds per stage-2 step on the 2-core machine; reused ones are faulted in once.
+#[derive(Default)]
+pub struct FrozenBuffers {
+    state: Vec<f32>,
+    seg_input: Vec<f32>,
+}
+
+impl FrozenBuffers {
+    /// Takes back the segmentation input of `rendered` (left empty) for the next render.
+    pub fn recycle(&mut self, rendered: &mut Rendered) {
+        self.seg_input = std::mem::take(&mut rendered.seg_input);
+    }
+
+    /// The segmentation-input buffer, `len` floats long (contents unspecified until written).
+    /// A buffer too small is replaced (growing would copy its old contents) by one with room
+    /// for `most` floats, the most later calls may ask for, reserved but not touched.
+    fn take_seg_input(&mut self, len: usize, most: usize) -> Vec<f32> {
+        let mut seg = std::mem::take(&mut self.seg_input);
+        seg.clear();
+        if seg.capacity() < len {
+            seg = Vec::with_capacity(len.max(most));
+        }
+        seg.resize(len, 0.0);
+        seg
+    }
 }
 
 /// Density and colour of `samples`; with `seg_budget` bytes enough for their segmentation
@@ -107,18 +144,47 @@ fn evaluate(
     samples: &Samples,
     record: bool,
     seg_budget: usize,
+    buffers: &mut FrozenBuffers,
 ) -> (Vec<f32>, Vec<[f32; 3]>, FieldTape, Vec<f32>) {
     let n = samples.len();
     let mut density = vec![0.0; n];
     let mut rgb = vec![[0.0; 3]; n];
-    let seg_len = n * field.seg_input_dim();
-    if !record && seg_len > 0 && seg_len.saturating_mul(std::mem::size_of::<f32>()) <= seg_budget {
-        let mut seg = vec![0.0; seg_len];
+    let seg_len = seg_input_len(field, n, seg_budget);
+    if !record && seg_len > 0 {
+        let mut seg = buffers.take_seg_input(seg_len, seg_len);
         field.forward_with_seg_input(&samples.positions, &samples.directions, &mut density, &mut rgb, &mut seg);
         return (density, rgb, None, seg);
     }
     let tape = field.forward(&samples.positions, &samples.directions, &mut density, &mut rgb, record);
     (density, rgb, tape, Vec::new())
+}
+
+/// Floats of the segmentation input of `n` samples, or 0 when over `budget` bytes.
+fn seg_input_len(field: &dyn RadianceField, n: usize, budget: usize) -> usize {
+    let len = n * field.seg_input_dim();
+    if len.saturating_mul(std::mem::size_of::<f32>()) <= budget {
+        len
+    } else {
+        0
+    }
+}
+
+/// [`evaluate`] of the kept samples of a frozen render from its density pass: their density
+/// as the pass found it, and their colour (and segmentation input) from the field's state.
+/// `seg` is the segmentation input's buffer (empty: none wanted).
+fn finish_from_state(
+    field: &dyn RadianceField,
+    samples: &Samples,
+    kept: &[u32],
+    sigma: &[f32],
+    state: &KeptState,
+    mut seg: Vec<f32>,
+) -> (Vec<f32>, Vec<[f32; 3]>, FieldTape, Vec<f32>) {
+    let density = kept.iter().map(|&i| sigma[i as usize]).collect();
+    let mut rgb = vec![[0.0; 3]; samples.len()];
+    let seg_out = (!seg.is_empty()).then_some(&mut seg[..]);
+    field.colour_from_state(&samples.positions, &samples.directions, &state.values, &state.rows(kept), &mut rgb, seg_out);
+    (density, rgb, None, seg)
 }
 
 fn render_impl(
@@ -128,6 +194,7 @@ fn render_impl(
     options: RenderOptions,
     record: bool,
     seg_budget: usize,
+    buffers: &mut FrozenBuffers,
     rng: &mut impl Rng,
 ) -> Rendered {
     let timer = std::time::Instant::now();
@@ -141,7 +208,7 @@ fn render_impl(
     if !prune {
         // Nothing to decide from density alone: skip the density pass (for network fields it
         // costs nearly as much as the full pass).
-        let (density, rgb, tape, seg_input) = evaluate(field, &candidates, record, seg_budget);
+        let (density, rgb, tape, seg_input) = evaluate(field, &candidates, record, seg_budget, buffers);
         if std::env::var("SOS_PROFILE").is_ok() {
             eprintln!(
                 "render: march {:.3} forward {:.3} (samples {})",
@@ -163,43 +230,29 @@ fn render_impl(
         };
     }
 
-    // Density-only pass to find where each ray terminates and which weights matter.
-    let sigma = density_pass(field, &candidates, options.early_stop);
-    // For each candidate: kept or not, and the optical depth of dropped candidates since the
-    // previous kept one (so the kept samples' transmittance stays exact).
-    let mut keep = vec![false; candidates.len()];
-    let mut skipped_before = vec![0.0f32; candidates.len()];
-    // The same criterion as the density pass, in optical depth, so the scan never reads a
-    // candidate the pass did not evaluate.
-    let stop_at = if options.early_stop > 0.0 { -options.early_stop.ln() } else { f32::INFINITY };
-    for r in 0..candidates.n_rays() {
-        let mut optical = 0.0f32;
-        let mut skipped = 0.0f32;
-        for i in candidates.range(r) {
-            if optical > stop_at {
-                break;
-            }
-            let transmittance = (-optical).exp();
-            let tau = sigma[i] * candidates.delta[i];
-            let w = -(-tau).exp_m1() * transmittance;
-            keep[i] = options.min_weight <= 0.0 || w > options.min_weight;
-            if keep[i] {
-                skipped_before[i] = skipped;
-                skipped = 0.0;
-            } else {
-                skipped += tau;
-            }
-            optical += tau;
-        }
-    }
+    // Density-only pass to find where each ray terminates and which weights matter; a
+    // frozen render also takes the field's state at the kept samples from it.
+    let state_budget = if record { 0 } else { STATE_BUDGET };
+    let state_buffer = std::mem::take(&mut buffers.state);
+    let mut pass = density_pass(field, &candidates, options.early_stop, options.min_weight, state_budget, state_buffer);
     let t_density = timer.elapsed().as_secs_f64();
-    let (mut samples, kept) = candidates.filter(|i| keep[i]);
+    let (mut samples, kept) = candidates.filter(|i| pass.keep[i]);
     if options.min_weight > 0.0 {
-        samples.skipped_tau = kept.iter().map(|&i| skipped_before[i as usize]).collect();
+        samples.skipped_tau = kept.iter().map(|&i| pass.skipped_before[i as usize]).collect();
     }
     let t_filter = timer.elapsed().as_secs_f64();
 
-    let (density, rgb, tape, seg_input) = evaluate(field, &samples, record, seg_budget);
+    let (density, rgb, tape, seg_input) = match pass.state.take() {
+        Some(state) => {
+            // Up to every candidate may be kept in later calls, within the budget.
+            let most = (n_candidates * field.seg_input_dim()).min(seg_budget / std::mem::size_of::<f32>());
+            let seg = buffers.take_seg_input(seg_input_len(field, samples.len(), seg_budget), most);
+            let out = finish_from_state(field, &samples, &kept, &pass.sigma, &state, seg);
+            buffers.state = state.values;
+            out
+        }
+        None => evaluate(field, &samples, record, seg_budget, buffers),
+    };
     if std::env::var("SOS_PROFILE").is_ok() {
         eprintln!(
             "render: march {:.3} density {:.3} filter {:.3} forward {:.3} (candidates {}, kept {})",
@@ -307,60 +360,6 @@ fn propose(
         .collect();
     (concat(parts), rendered)
 }
-
-/// Densities of the candidates, evaluated in waves: every live ray evaluates its next few
-/// candidates, then rays whose transmittance fell below `early_stop` stop, so candidates
-/// behind a ray's termination point are never evaluated (for network fields the density pass
-/// dominates a frozen-field render). Entries past a ray's termination are left at 0 and must
-/// not be read (the caller's scan stops at the same point). With `early_stop = 0` every
-/// candidate is evaluated in one batch.
-fn density_pass(field: &dyn RadianceField, candidates: &Samples, early_stop: f32) -> Vec<f32> {
-    let n = candidates.len();
-    let mut sigma = vec![0.0; n];
-    if early_stop <= 0.0 {
-        field.density(&candidates.positions, &mut sigma);
-        return sigma;
-    }
-    let n_rays = candidates.n_rays();
-    let mut cursor: Vec<usize> = (0..n_rays).map(|r| candidates.ray_start[r] as usize).collect();
-    let mut optical = vec![0.0f32; n_rays];
-    let mut live: Vec<usize> = (0..n_rays).filter(|&r| !candidates.range(r).is_empty()).collect();
-    // Optical depth at which the transmittance reaches `early_stop`.
-    let stop_at = -early_stop.ln();
-    let mut wave = FIRST_WAVE;
-    let mut idx = Vec::new();
-    let mut positions = Vec::new();
-    while !live.is_empty() {
-        idx.clear();
-        for &r in &live {
-            let end = (cursor[r] + wave).min(candidates.ray_start[r + 1] as usize);
-            idx.extend(cursor[r] as u32..end as u32);
-        }
-        positions.clear();
-        positions.extend(idx.iter().map(|&i| candidates.positions[i as usize]));
-        let mut values = vec![0.0; idx.len()];
-        field.density(&positions, &mut values);
-        for (&i, v) in idx.iter().zip(values) {
-            sigma[i as usize] = v;
-        }
-        live.retain(|&r| {
-            let end = (cursor[r] + wave).min(candidates.ray_start[r + 1] as usize);
-            for i in cursor[r]..end {
-                optical[r] += sigma[i] * candidates.delta[i];
-            }
-            cursor[r] = end;
-            end < candidates.ray_start[r + 1] as usize && optical[r] <= stop_at
-        });
-        wave = (wave * 2).min(MAX_WAVE);
-    }
-    sigma
-}
-
-/// Candidates per live ray in the first wave of [`density_pass`], doubled each wave up to
-/// [`MAX_WAVE`].
-const FIRST_WAVE: usize = 8;
-/// Largest wave of [`density_pass`].
-const MAX_WAVE: usize = 128;
 
 /// Per-chunk seeds for stratified jitter; deterministic rendering draws nothing from `rng`, so
 /// a caller's random stream does not depend on how (or whether) space was skipped.
@@ -537,12 +536,25 @@ mod tests {
     use crate::render::sampler::MarchOptions;
 
     /// A dense ball of radius 0.5 at the origin, coloured by position; counts density calls.
+    /// `with_state`: its density pass keeps the position as state, and the colour pass reads
+    /// position from there.
     struct Ball {
         evaluated: AtomicUsize,
         hierarchical: Option<Hierarchical>,
+        with_state: bool,
+        /// Samples whose colour came from the state.
+        from_state: AtomicUsize,
     }
 
     impl Ball {
+        fn new(hierarchical: Option<Hierarchical>, with_state: bool) -> Self {
+            Ball { evaluated: AtomicUsize::new(0), hierarchical, with_state, from_state: AtomicUsize::new(0) }
+        }
+
+        fn colour(p: Vec3) -> [f32; 3] {
+            [0.5 + 0.5 * p[0], 0.5 + 0.5 * p[1], 0.5]
+        }
+
         fn sigma(p: Vec3) -> f32 {
             let r2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2];
             if r2 < 0.25 {
@@ -563,9 +575,41 @@ mod tests {
         fn forward(&self, p: &[Vec3], _: &[Vec3], d: &mut [f32], c: &mut [[f32; 3]], _: bool) -> FieldTape {
             for i in 0..p.len() {
                 d[i] = Ball::sigma(p[i]);
-                c[i] = [0.5 + 0.5 * p[i][0], 0.5 + 0.5 * p[i][1], 0.5];
+                c[i] = Ball::colour(p[i]);
             }
             None
+        }
+        fn density_state_dim(&self) -> usize {
+            if self.with_state {
+                3
+            } else {
+                0
+            }
+        }
+        fn density_with_state(&self, positions: &[Vec3], density: &mut [f32], state: &mut [f32]) {
+            self.density(positions, density);
+            for (p, s) in positions.iter().zip(state.chunks_exact_mut(3)) {
+                s.copy_from_slice(p);
+            }
+        }
+        fn colour_from_state(
+            &self,
+            _: &[Vec3],
+            _: &[Vec3],
+            state: &[f32],
+            rows: &[u32],
+            rgb: &mut [[f32; 3]],
+            seg: Option<&mut [f32]>,
+        ) {
+            self.from_state.fetch_add(rows.len(), Ordering::Relaxed);
+            let at = |j: usize| -> Vec3 { state[3 * rows[j] as usize..][..3].try_into().unwrap() };
+            for (j, c) in rgb.iter_mut().enumerate() {
+                *c = Ball::colour(at(j));
+            }
+            if let Some(seg) = seg {
+                let p: Vec<Vec3> = (0..rows.len()).map(at).collect();
+                self.seg_input(&p, seg);
+            }
         }
         fn backward(&mut self, _: &[Vec3], _: &[Vec3], _: FieldTape, _: &[f32], _: &[[f32; 3]]) {}
         fn step(&mut self, _: f32) {}
@@ -611,7 +655,7 @@ mod tests {
     /// and leave the colours as they are.
     #[test]
     fn extra_channels_composite_the_selected_samples() {
-        let field = Ball { evaluated: AtomicUsize::new(0), hierarchical: None };
+        let field = Ball::new(None, false);
         let (extent, contraction, rays) = setup();
         let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
         let options = RenderOptions { march: MarchOptions { steps: 128, stratified: false }, early_stop: 0.0, min_weight: 0.0 };
@@ -643,7 +687,7 @@ mod tests {
     /// only within its budget; the samples and their values are those of a plain render.
     #[test]
     fn frozen_render_keeps_the_segmentation_input_within_its_budget() {
-        let field = Ball { evaluated: AtomicUsize::new(0), hierarchical: None };
+        let field = Ball::new(None, false);
         let (extent, contraction, rays) = setup();
         let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
         let march = MarchOptions { steps: 64, stratified: false };
@@ -653,21 +697,36 @@ mod tests {
         ] {
             let rng = || rand_chacha::ChaCha8Rng::seed_from_u64(0);
             let plain = render(&field, ctx, &rays, options, false, &mut rng());
-            let kept = render_with_seg_input(&field, ctx, &rays, options, usize::MAX, &mut rng());
+            let kept = render_with_seg_input(&field, ctx, &rays, options, usize::MAX, &mut FrozenBuffers::default(), &mut rng());
             assert!(plain.seg_input.is_empty());
             assert_eq!((&kept.samples.t, &kept.density, &kept.rgb), (&plain.samples.t, &plain.density, &plain.rgb));
             let mut want = vec![0.0; kept.samples.len() * 2];
             field.seg_input(&kept.samples.positions, &mut want);
             assert!(!want.is_empty());
             assert_eq!(kept.seg_input, want);
-            let over = render_with_seg_input(&field, ctx, &rays, options, want.len() * 4 - 1, &mut rng());
+            let over = render_with_seg_input(&field, ctx, &rays, options, want.len() * 4 - 1, &mut FrozenBuffers::default(), &mut rng());
             assert!(over.seg_input.is_empty(), "over its budget, nothing is kept");
+            // A field that keeps its state from the density pass gives the same render.
+            // Its buffers are reused from call to call, whatever they held.
+            let stateful = Ball::new(None, true);
+            let mut buffers = FrozenBuffers { state: vec![f32::NAN; 7], seg_input: vec![f32::NAN; 100_000] };
+            for budget in [usize::MAX, 0, usize::MAX] {
+                stateful.from_state.store(0, Ordering::Relaxed);
+                let mut s = render_with_seg_input(&stateful, ctx, &rays, options, budget, &mut buffers, &mut rng());
+                // Only a pass that prunes has a density pass to keep state from.
+                let pruned = options.early_stop > 0.0;
+                assert_eq!(stateful.from_state.load(Ordering::Relaxed), if pruned { s.samples.len() } else { 0 });
+                let same = (&s.samples.t, &s.density, &s.rgb, &s.seg_input);
+                let seg = if budget == 0 { &over.seg_input } else { &kept.seg_input };
+                assert_eq!(same, (&kept.samples.t, &kept.density, &kept.rgb, seg));
+                buffers.recycle(&mut s);
+            }
         }
     }
 
     #[test]
     fn early_termination_skips_density_work_and_keeps_colours() {
-        let field = Ball { evaluated: AtomicUsize::new(0), hierarchical: None };
+        let field = Ball::new(None, false);
         let march = MarchOptions { steps: 256, stratified: false };
         let (full, _) = colors(&field, RenderOptions { march, early_stop: 0.0, min_weight: 0.0 });
         let (pruned, evaluated) = colors(&field, RenderOptions { march, early_stop: 1e-4, min_weight: 1e-4 });
@@ -686,10 +745,10 @@ mod tests {
 
     #[test]
     fn hierarchical_sampling_concentrates_samples_and_matches_a_dense_render() {
-        let dense = Ball { evaluated: AtomicUsize::new(0), hierarchical: None };
+        let dense = Ball::new(None, false);
         let (want, _) = colors(&dense, RenderOptions { march: MarchOptions { steps: 2048, stratified: false }, early_stop: 0.0, min_weight: 0.0 });
         let h = Hierarchical { coarse_samples: 32, fine_samples: 64 };
-        let field = Ball { evaluated: AtomicUsize::new(0), hierarchical: Some(h) };
+        let field = Ball::new(Some(h), false);
         let (got, _) = colors(&field, RenderOptions { march: MarchOptions { steps: 8, stratified: false }, early_stop: 0.0, min_weight: 0.0 });
         let mut worst = 0.0f32;
         for (a, b) in want.iter().zip(&got) {

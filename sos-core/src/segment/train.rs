@@ -12,7 +12,7 @@ use crate::image::RgbImage;
 use crate::plugin::{ContrastiveLoss, PairMiner, PatchBatch};
 use crate::render::composite::{RayColor, RayGrad, EMPTY_RAY_DEPTH};
 use crate::render::rays::RayBatch;
-use crate::render::renderer::{render, render_with_seg_input, Rendered};
+use crate::render::renderer::{render, render_with_seg_input, FrozenBuffers, Rendered};
 use crate::segment::defaults;
 use crate::segment::head::SegHead;
 use crate::segment::head_pass::{self, HeadSamples};
@@ -57,6 +57,16 @@ pub struct Segmenter {
     pub sampler: PatchSampler,
     /// Stage-2 steps completed.
     pub step: usize,
+    /// Buffers reused from step to step and from call to call of [`train_segmentation`].
+    reused: ReusedBuffers,
+}
+
+/// The gigabytes a stage-2 step fills (the head's tapes, the frozen render's state and
+/// segmentation input), kept so that they are page-faulted in once rather than every step.
+#[derive(Default)]
+struct ReusedBuffers {
+    tapes: head_pass::HeadTapes,
+    render: FrozenBuffers,
 }
 
 /// Loss values of one stage-2 step.
@@ -119,6 +129,7 @@ impl Segmenter {
             losses,
             sampler,
             step: 0,
+            reused: ReusedBuffers::default(),
         })
     }
 }
@@ -151,7 +162,6 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
     let started = Instant::now();
     let mut last = SegStepStats::default();
     let mut bad_steps = 0;
-    let mut tapes = head_pass::HeadTapes::default();
     while seg.step < cfg.steps {
         let patches = seg.sampler.next_batch(&session.scene, n_patches);
         for notice in seg.sampler.take_notices() {
@@ -159,13 +169,13 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
         }
         let timer = Instant::now();
         let rays = patch_rays(&session.scene, &patches);
-        let mut r = render_rays(session, &rays, joint, SEG_INPUT_BUDGET, &mut rng);
+        let mut r = render_rays(session, &rays, joint, SEG_INPUT_BUDGET, &mut seg.reused.render, &mut rng);
 
         // Head on the surviving samples, then logits composited with the field's weights.
         let n_samples = r.samples.len();
         let t_field = timer.elapsed().as_secs_f64();
         let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
-        let sample_logits = head_pass::forward(session.field.as_ref(), &seg.head, head_samples, &mut tapes);
+        let sample_logits = head_pass::forward(session.field.as_ref(), &seg.head, head_samples, &mut seg.reused.tapes);
         let mut logits = vec![0.0f32; n_patches * d_seg * rays_per_patch];
         for ray in 0..rays.len() {
             let (patch, pix) = (ray / rays_per_patch, ray % rays_per_patch);
@@ -246,7 +256,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
                 }
             }
         }
-        head_pass::backward(session.field.as_ref(), &mut seg.head, head_samples, &grad_sample, &tapes);
+        head_pass::backward(session.field.as_ref(), &mut seg.head, head_samples, &grad_sample, &seg.reused.tapes);
         let lr_factor = cfg.final_lr_factor.powf(seg.step as f32 / cfg.steps.max(1) as f32);
         seg.head.step(lr_factor);
         if std::env::var("SOS_PROFILE").is_ok() {
@@ -278,6 +288,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
             session.field.backward(&r.samples.positions, &r.samples.directions, tape, &g_sigma, &g_rgb);
             session.field.step(lr_factor * session.config.train.final_lr_factor);
         }
+        seg.reused.render.recycle(&mut r);
         seg.step += 1;
         last = stats;
         let elapsed = started.elapsed().as_secs_f64();
@@ -305,14 +316,21 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
 /// samples whose compositing weight is below `segment.weight_threshold` are skipped (they
 /// cannot matter), and the render keeps the field's segmentation input at the rest when it
 /// fits `seg_budget` bytes, so the head needs no second pass of the field.
-fn render_rays(session: &Session, rays: &RayBatch, joint: bool, seg_budget: usize, rng: &mut impl Rng) -> Rendered {
+fn render_rays(
+    session: &Session,
+    rays: &RayBatch,
+    joint: bool,
+    seg_budget: usize,
+    buffers: &mut FrozenBuffers,
+    rng: &mut impl Rng,
+) -> Rendered {
     let mut options = session.render_options(false);
     let (field, ctx) = (session.field.as_ref(), session.render_context());
     let mut r = if joint {
         render(field, ctx, rays, options, true, rng)
     } else {
         options.min_weight = session.config.segment.weight_threshold;
-        render_with_seg_input(field, ctx, rays, options, seg_budget, rng)
+        render_with_seg_input(field, ctx, rays, options, seg_budget, buffers, rng)
     };
     r.composite();
     r
@@ -338,7 +356,7 @@ pub fn render_patches(session: &Session, patches: &[Patch]) -> Vec<RgbImage> {
     let rays = patch_rays(&session.scene, patches);
     // Evaluation marching is not stratified: the generator does not change the result.
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed);
-    let r = render_rays(session, &rays, false, 0, &mut rng);
+    let r = render_rays(session, &rays, false, 0, &mut FrozenBuffers::default(), &mut rng);
     patch_images(&r.colors, session.config.segment.patch_size as usize)
 }
 

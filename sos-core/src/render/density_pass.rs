@@ -1,0 +1,311 @@
+//! The density pass of a render: the field's density at the candidates, evaluated in waves so
+//! that early ray termination never evaluates what lies behind a ray's termination point, and
+//! which candidates the full pass needs (those before termination whose compositing weight
+//! exceeds the threshold). A field with a per-sample state
+//! ([`RadianceField::density_state_dim`], NeRF's trunk activations) hands it over for the kept
+//! candidates, so that a frozen render's colour pass does not run the density network again.
+
+use crate::plugin::RadianceField;
+use crate::render::sampler::Samples;
+
+/// Candidates per live ray in the first wave, doubled each wave up to [`MAX_WAVE`].
+const FIRST_WAVE: usize = 8;
+/// Largest wave.
+const MAX_WAVE: usize = 128;
+/// Most candidates in one field call, so that one call's state stays small (64 MiB for
+/// NeRF's 256 floats per sample) however many rays are live.
+const GROUP: usize = 1 << 16;
+
+/// What the density pass decided, per candidate.
+pub struct DensityPass {
+    /// Density at each candidate; 0 where it was not evaluated (behind a ray's termination).
+    pub sigma: Vec<f32>,
+    /// Whether the full pass needs the candidate.
+    pub keep: Vec<bool>,
+    /// Optical depth of the dropped candidates between a kept candidate and the previous kept
+    /// one of its ray (so that the kept samples' transmittance stays exact).
+    pub skipped_before: Vec<f32>,
+    /// The field's state at the kept candidates, when the field has one and it fit the budget.
+    pub state: Option<KeptState>,
+}
+
+/// The field's per-sample state at the kept candidates, in the order the waves kept them.
+pub struct KeptState {
+    /// `[kept, dim]`.
+    pub values: Vec<f32>,
+    dim: usize,
+    /// Most floats `values` may hold.
+    limit: usize,
+    /// Per candidate, its row in `values` (`u32::MAX`: not kept).
+    row_of: Vec<u32>,
+}
+
+impl KeptState {
+    /// Rows of `values` for candidates `kept` (all kept by the pass).
+    pub fn rows(&self, kept: &[u32]) -> Vec<u32> {
+        kept.iter().map(|&i| self.row_of[i as usize]).collect()
+    }
+
+    /// Appends candidate `i`'s state; false when that would exceed the budget.
+    fn push(&mut self, i: usize, row: &[f32]) -> bool {
+        if self.values.len() + self.dim > self.limit {
+            return false;
+        }
+        self.row_of[i] = (self.values.len() / self.dim) as u32;
+        self.values.extend_from_slice(row);
+        true
+    }
+}
+
+/// Where one ray's scan stands between waves.
+struct RayScan {
+    /// Next candidate to evaluate.
+    cursor: usize,
+    /// Optical depth up to `cursor`.
+    optical: f32,
+    /// Optical depth of the candidates dropped since the last kept one.
+    skipped: f32,
+}
+
+/// Runs the density pass: rays stop once their transmittance falls below `early_stop` (0: no
+/// termination, every candidate in one wave) and candidates are kept when their compositing
+/// weight exceeds `min_weight` (0: every candidate before termination). The kept candidates'
+/// state is kept, in `buffer` (emptied first; its memory is reused), when the field has one
+/// and it takes at most `state_budget` bytes.
+pub fn density_pass(
+    field: &dyn RadianceField,
+    candidates: &Samples,
+    early_stop: f32,
+    min_weight: f32,
+    state_budget: usize,
+    mut buffer: Vec<f32>,
+) -> DensityPass {
+    let n = candidates.len();
+    let dim = field.density_state_dim();
+    let limit = state_budget / std::mem::size_of::<f32>();
+    let mut state = (dim > 0 && n > 0 && limit >= dim).then(|| {
+        // Reserved, not touched: pages are only committed as rows arrive. A buffer too small
+        // is replaced rather than grown (growing would copy its old contents).
+        let need = (n * dim).min(limit);
+        buffer.clear();
+        if buffer.capacity() < need {
+            buffer = Vec::with_capacity(need);
+        }
+        KeptState { values: buffer, dim, limit, row_of: vec![u32::MAX; n] }
+    });
+    let mut pass = DensityPass { sigma: vec![0.0; n], keep: vec![false; n], skipped_before: vec![0.0; n], state: None };
+    // Optical depth at which the transmittance reaches `early_stop`.
+    let stop_at = if early_stop > 0.0 { -early_stop.ln() } else { f32::INFINITY };
+    let end_of = |r: usize| candidates.ray_start[r + 1] as usize;
+    let mut rays: Vec<RayScan> = (0..candidates.n_rays())
+        .map(|r| RayScan { cursor: candidates.ray_start[r] as usize, optical: 0.0, skipped: 0.0 })
+        .collect();
+    let mut live: Vec<usize> = (0..rays.len()).filter(|&r| rays[r].cursor < end_of(r)).collect();
+    let mut wave = if early_stop > 0.0 { FIRST_WAVE } else { usize::MAX };
+    let (mut idx, mut positions, mut values, mut group_state) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    while !live.is_empty() {
+        let mut first = 0;
+        while first < live.len() {
+            // The next group of live rays, each with its whole wave.
+            idx.clear();
+            let mut last = first;
+            while last < live.len() {
+                let r = live[last];
+                let stop = rays[r].cursor.saturating_add(wave).min(end_of(r));
+                if !idx.is_empty() && idx.len() + (stop - rays[r].cursor) > GROUP {
+                    break;
+                }
+                idx.extend(rays[r].cursor as u32..stop as u32);
+                last += 1;
+            }
+            positions.clear();
+            positions.extend(idx.iter().map(|&i| candidates.positions[i as usize]));
+            values.clear();
+            values.resize(idx.len(), 0.0);
+            if state.is_some() {
+                group_state.resize(idx.len() * dim, 0.0);
+                field.density_with_state(&positions, &mut values, &mut group_state);
+            } else {
+                field.density(&positions, &mut values);
+            }
+            // Scan each ray's wave in order, as compositing will.
+            let mut row = 0;
+            let mut state_fits = true;
+            for &r in &live[first..last] {
+                let ray = &mut rays[r];
+                let stop = ray.cursor.saturating_add(wave).min(end_of(r));
+                for (k, i) in (ray.cursor..stop).enumerate() {
+                    if ray.optical > stop_at {
+                        break;
+                    }
+                    let sigma = values[row + k];
+                    pass.sigma[i] = sigma;
+                    let tau = sigma * candidates.delta[i];
+                    let w = -(-tau).exp_m1() * (-ray.optical).exp();
+                    let keep = min_weight <= 0.0 || w > min_weight;
+                    pass.keep[i] = keep;
+                    if keep {
+                        pass.skipped_before[i] = ray.skipped;
+                        ray.skipped = 0.0;
+                        if let Some(s) = state.as_mut() {
+                            state_fits &= s.push(i, &group_state[(row + k) * dim..][..dim]);
+                        }
+                    } else {
+                        ray.skipped += tau;
+                    }
+                    ray.optical += tau;
+                }
+                row += stop - ray.cursor;
+                ray.cursor = stop;
+            }
+            if !state_fits {
+                // Over budget: the colour pass evaluates the whole network instead.
+                state = None;
+            }
+            first = last;
+        }
+        live.retain(|&r| rays[r].cursor < end_of(r) && rays[r].optical <= stop_at);
+        wave = wave.saturating_mul(2).min(MAX_WAVE);
+    }
+    pass.state = state;
+    pass
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Vec3;
+    use crate::plugin::FieldTape;
+
+    /// Density `10·x` clamped at 0; its state is the position itself (3 floats).
+    struct Ramp {
+        with_state: bool,
+    }
+
+    impl RadianceField for Ramp {
+        fn density(&self, positions: &[Vec3], density: &mut [f32]) {
+            for (p, d) in positions.iter().zip(density) {
+                *d = (10.0 * p[0]).max(0.0);
+            }
+        }
+        fn density_state_dim(&self) -> usize {
+            if self.with_state {
+                3
+            } else {
+                0
+            }
+        }
+        fn density_with_state(&self, positions: &[Vec3], density: &mut [f32], state: &mut [f32]) {
+            self.density(positions, density);
+            for (p, s) in positions.iter().zip(state.chunks_exact_mut(3)) {
+                s.copy_from_slice(p);
+            }
+        }
+        fn forward(&self, _: &[Vec3], _: &[Vec3], _: &mut [f32], _: &mut [[f32; 3]], _: bool) -> FieldTape {
+            unreachable!("the density pass only reads density")
+        }
+        fn backward(&mut self, _: &[Vec3], _: &[Vec3], _: FieldTape, _: &[f32], _: &[[f32; 3]]) {}
+        fn step(&mut self, _: f32) {}
+        fn seg_input_dim(&self) -> usize {
+            0
+        }
+        fn seg_input(&self, _: &[Vec3], _: &mut [f32]) {}
+        fn save_state(&self) -> Vec<u8> {
+            Vec::new()
+        }
+        fn load_state(&mut self, _: &[u8]) -> Result<(), String> {
+            Ok(())
+        }
+        fn num_parameters(&self) -> usize {
+            0
+        }
+    }
+
+    /// Rays of different lengths along +x from x = -1, in steps of 0.01.
+    fn candidates() -> Samples {
+        let mut s = Samples { ray_start: vec![0], ..Default::default() };
+        for (r, len) in [0usize, 300, 17, 150, 1, 260].into_iter().enumerate() {
+            for k in 0..len {
+                let x = -1.0 + 0.01 * k as f32;
+                s.t.push(k as f32);
+                s.delta.push(0.01);
+                s.positions.push([x, r as f32, 0.0]);
+                s.directions.push([1.0, 0.0, 0.0]);
+            }
+            s.ray_start.push(s.t.len() as u32);
+        }
+        s
+    }
+
+    /// The waves decide what one scan over all densities decides, and the state of every
+    /// kept candidate is its own.
+    #[test]
+    fn waves_match_one_scan_and_keep_each_candidates_state() {
+        let c = candidates();
+        let mut all = vec![0.0; c.len()];
+        Ramp { with_state: false }.density(&c.positions, &mut all);
+        for (early_stop, min_weight) in [(1e-4, 1e-3), (1e-2, 0.0), (0.0, 1e-3), (1e-4, 0.0)] {
+            let pass = density_pass(&Ramp { with_state: true }, &c, early_stop, min_weight, usize::MAX, Vec::new());
+            let stop_at = if early_stop > 0.0 { -f32::ln(early_stop) } else { f32::INFINITY };
+            let (mut kept, mut terminated) = (0, 0);
+            for r in 0..c.n_rays() {
+                let mut optical = 0.0f32;
+                let mut skipped = 0.0f32;
+                for i in c.range(r) {
+                    if optical > stop_at {
+                        terminated += 1;
+                        assert!(!pass.keep[i]);
+                        continue;
+                    }
+                    assert_eq!(pass.sigma[i], all[i]);
+                    let tau = all[i] * c.delta[i];
+                    let w = -(-tau).exp_m1() * (-optical).exp();
+                    assert_eq!(pass.keep[i], min_weight <= 0.0 || w > min_weight);
+                    if pass.keep[i] {
+                        kept += 1;
+                        assert_eq!(pass.skipped_before[i], skipped);
+                        skipped = 0.0;
+                    } else {
+                        skipped += tau;
+                    }
+                    optical += tau;
+                }
+            }
+            assert!(kept > 100, "{kept} kept");
+            assert_eq!(terminated > 0, early_stop > 0.0, "{terminated} candidates behind termination");
+            let state = pass.state.as_ref().expect("within budget");
+            let kept_ids: Vec<u32> = (0..c.len() as u32).filter(|&i| pass.keep[i as usize]).collect();
+            let rows = state.rows(&kept_ids);
+            assert_eq!(state.values.len(), 3 * kept_ids.len());
+            for (&i, &row) in kept_ids.iter().zip(&rows) {
+                assert_eq!(&state.values[3 * row as usize..][..3], &c.positions[i as usize][..]);
+            }
+            // A state one row over its budget is dropped; the decisions stay.
+            let tight = density_pass(&Ramp { with_state: true }, &c, early_stop, min_weight, 4 * (3 * kept - 1), Vec::new());
+            assert!(tight.state.is_none());
+            assert_eq!((tight.keep, tight.sigma), (pass.keep.clone(), pass.sigma.clone()));
+            let plain = density_pass(&Ramp { with_state: false }, &c, early_stop, min_weight, usize::MAX, Vec::new());
+            assert!(plain.state.is_none());
+            assert_eq!(plain.keep, pass.keep);
+        }
+    }
+
+    /// Rays longer than a group, and more rays than one group holds, are evaluated in full.
+    #[test]
+    fn groups_split_large_waves() {
+        let mut c = Samples { ray_start: vec![0], ..Default::default() };
+        for len in [GROUP + 5, 3, GROUP / 2, GROUP / 2 + 1] {
+            for k in 0..len {
+                c.t.push(k as f32);
+                c.delta.push(1e-6);
+                c.positions.push([1.0, 0.0, 0.0]);
+                c.directions.push([1.0, 0.0, 0.0]);
+            }
+            c.ray_start.push(c.t.len() as u32);
+        }
+        let pass = density_pass(&Ramp { with_state: true }, &c, 0.0, 0.0, usize::MAX, Vec::new());
+        assert!(pass.sigma.iter().all(|&s| s == 10.0));
+        assert!(pass.keep.iter().all(|&k| k));
+        assert_eq!(pass.state.expect("within budget").values.len(), 3 * c.len());
+    }
+}
