@@ -85,11 +85,12 @@ pub fn density_pass(
     let limit = state_budget / std::mem::size_of::<f32>();
     let mut state = (dim > 0 && n > 0 && limit >= dim).then(|| {
         // Reserved, not touched: pages are only committed as rows arrive. A buffer too small
-        // is replaced rather than grown (growing would copy its old contents).
+        // is replaced rather than grown (growing would copy its old contents), with room for
+        // later passes over up to twice as many candidates.
         let need = (n * dim).min(limit);
         buffer.clear();
         if buffer.capacity() < need {
-            buffer = Vec::with_capacity(need);
+            buffer = Vec::with_capacity((2 * n * dim).min(limit));
         }
         KeptState { values: buffer, dim, limit, row_of: vec![u32::MAX; n] }
     });

@@ -1,6 +1,9 @@
 //! Rendering a batch of rays through a field: candidate samples with empty-space skipping, a
 //! cheap density pass for early ray termination (and, with a frozen field, weight
-//! thresholding), a full pass on the surviving samples, then compositing and its backward.
+//! thresholding; [`crate::render::density_pass`]), a full pass on the surviving samples, then
+//! compositing and its backward. A frozen render of a field with a per-sample state (NeRF's
+//! trunk) takes the surviving samples' state from the density pass, so its colour pass runs
+//! only what lies after the density (NeRF's view branch).
 //!
 //! A field that asks for [`Hierarchical`] sampling (NeRF's coarse + fine networks) gets its
 //! candidates from a proposal pass instead: stratified proposal samples (occupancy-skipped like
@@ -137,36 +140,53 @@ impl FrozenBuffers {
     }
 }
 
-/// Density and colour of `samples`; with `seg_budget` bytes enough for their segmentation
-/// input (and no tape wanted), that too.
+/// How much segmentation input a frozen render keeps: at most `budget` bytes, and (a hint
+/// for its buffer) at most `most` floats in any call.
+#[derive(Clone, Copy)]
+struct SegLimits {
+    budget: usize,
+    most: usize,
+}
+
+impl SegLimits {
+    /// Within `budget` bytes, for a render of `n_candidates` candidates (any of which may be
+    /// kept), with room for later renders of up to twice as many.
+    fn new(field: &dyn RadianceField, n_candidates: usize, budget: usize) -> Self {
+        let most = (2 * n_candidates * field.seg_input_dim()).min(budget / std::mem::size_of::<f32>());
+        SegLimits { budget, most }
+    }
+
+    /// The buffer for `n` samples' input, or an empty one when over budget.
+    fn buffer(self, field: &dyn RadianceField, n: usize, buffers: &mut FrozenBuffers) -> Vec<f32> {
+        let len = n * field.seg_input_dim();
+        if len == 0 || len.saturating_mul(std::mem::size_of::<f32>()) > self.budget {
+            return Vec::new();
+        }
+        buffers.take_seg_input(len, self.most)
+    }
+}
+
+/// Density and colour of `samples`; with no tape wanted and the budget enough for their
+/// segmentation input, that too.
 fn evaluate(
     field: &dyn RadianceField,
     samples: &Samples,
     record: bool,
-    seg_budget: usize,
+    seg: SegLimits,
     buffers: &mut FrozenBuffers,
 ) -> (Vec<f32>, Vec<[f32; 3]>, FieldTape, Vec<f32>) {
     let n = samples.len();
     let mut density = vec![0.0; n];
     let mut rgb = vec![[0.0; 3]; n];
-    let seg_len = seg_input_len(field, n, seg_budget);
-    if !record && seg_len > 0 {
-        let mut seg = buffers.take_seg_input(seg_len, seg_len);
-        field.forward_with_seg_input(&samples.positions, &samples.directions, &mut density, &mut rgb, &mut seg);
-        return (density, rgb, None, seg);
+    if !record && seg.budget > 0 {
+        let mut seg = seg.buffer(field, n, buffers);
+        if !seg.is_empty() {
+            field.forward_with_seg_input(&samples.positions, &samples.directions, &mut density, &mut rgb, &mut seg);
+            return (density, rgb, None, seg);
+        }
     }
     let tape = field.forward(&samples.positions, &samples.directions, &mut density, &mut rgb, record);
     (density, rgb, tape, Vec::new())
-}
-
-/// Floats of the segmentation input of `n` samples, or 0 when over `budget` bytes.
-fn seg_input_len(field: &dyn RadianceField, n: usize, budget: usize) -> usize {
-    let len = n * field.seg_input_dim();
-    if len.saturating_mul(std::mem::size_of::<f32>()) <= budget {
-        len
-    } else {
-        0
-    }
 }
 
 /// [`evaluate`] of the kept samples of a frozen render from its density pass: their density
@@ -204,11 +224,12 @@ fn render_impl(
     };
     let t_march = timer.elapsed().as_secs_f64();
     let n_candidates = candidates.len();
+    let seg_limits = SegLimits::new(field, n_candidates, seg_budget);
     let prune = options.early_stop > 0.0 || options.min_weight > 0.0;
     if !prune {
         // Nothing to decide from density alone: skip the density pass (for network fields it
         // costs nearly as much as the full pass).
-        let (density, rgb, tape, seg_input) = evaluate(field, &candidates, record, seg_budget, buffers);
+        let (density, rgb, tape, seg_input) = evaluate(field, &candidates, record, seg_limits, buffers);
         if std::env::var("SOS_PROFILE").is_ok() {
             eprintln!(
                 "render: march {:.3} forward {:.3} (samples {})",
@@ -244,14 +265,12 @@ fn render_impl(
 
     let (density, rgb, tape, seg_input) = match pass.state.take() {
         Some(state) => {
-            // Up to every candidate may be kept in later calls, within the budget.
-            let most = (n_candidates * field.seg_input_dim()).min(seg_budget / std::mem::size_of::<f32>());
-            let seg = buffers.take_seg_input(seg_input_len(field, samples.len(), seg_budget), most);
+            let seg = seg_limits.buffer(field, samples.len(), buffers);
             let out = finish_from_state(field, &samples, &kept, &pass.sigma, &state, seg);
             buffers.state = state.values;
             out
         }
-        None => evaluate(field, &samples, record, seg_budget, buffers),
+        None => evaluate(field, &samples, record, seg_limits, buffers),
     };
     if std::env::var("SOS_PROFILE").is_ok() {
         eprintln!(
