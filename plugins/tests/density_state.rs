@@ -2,12 +2,13 @@
 //! same head, bit for bit, as stage 2 evaluating the kept samples afresh; for `nerf` and for
 //! `nerf++` with its background network.
 
-use std::path::Path;
+mod common;
+
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 
+use common::tiny_session;
 use sos_core::camera::Vec3;
-use sos_core::config::RunConfig;
 use sos_core::plugin::field::Hierarchical;
 use sos_core::plugin::{FieldTape, RadianceField};
 use sos_core::segment::train::{train_segmentation, Segmenter};
@@ -86,43 +87,12 @@ impl RadianceField for Probe {
 }
 
 fn session(field: &str, tag: &str) -> Session {
-    let (rig, extra) = match field {
+    let (rig, sampling) = match field {
         "nerf" => ("object-centric", "coarse_samples = 8\nfine_samples = 16"),
         _ => ("unbounded", "hierarchical = false"),
     };
-    let text = format!(
-        r#"
-name = "density-state"
-output_dir = "runs"
-[scene]
-kind = "synthetic"
-rig = "{rig}"
-width = 40
-height = 30
-views = 6
-[field]
-kind = "{field}"
-depth = 2
-width = 32
-skip = 0
-view_width = 8
-{extra}
-[train]
-steps = 6
-rays_per_step = 512
-samples_per_ray = 48
-occupancy = false
-checkpoint_every = 0
-[segment]
-steps = 3
-patches = 2
-patch_size = 8
-stride = 2
-"#
-    );
-    let config = RunConfig::parse(&text, Path::new("density-state.toml")).unwrap();
-    let dir = std::env::temp_dir().join(format!("sos-density-state-{field}-{tag}-{}", std::process::id()));
-    Session::from_config(config, &dir).unwrap()
+    let keys = format!("depth = 2\nwidth = 32\nskip = 0\nview_width = 8\n{sampling}");
+    tiny_session(field, rig, &keys, 6, &format!("density-state-{tag}"))
 }
 
 /// Stage 2 from the field state `trained` with the probe wrapped around the field: the

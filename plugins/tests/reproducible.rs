@@ -3,9 +3,9 @@
 //! gradient grows into a visibly different mask), so parallel sums must not depend on how the
 //! work was scheduled.
 
-use std::path::Path;
+mod common;
 
-use sos_core::config::RunConfig;
+use common::tiny_session;
 use sos_core::segment::train::{train_segmentation, Segmenter};
 use sos_core::train::photometric::train_photometric;
 use sos_core::train::Session;
@@ -13,39 +13,12 @@ use sos_core::train::Session;
 use sos_plugins as _;
 
 fn session(field: &str, threads: usize) -> Session {
-    let extra = if field == "nerf" {
+    let keys = if field == "nerf" {
         "depth = 2\nwidth = 32\nskip = 0\nview_width = 8\ncoarse_samples = 8\nfine_samples = 16"
     } else {
         "resolution = [16, 16, 16]\ninitial_resolution = [16, 16, 16]\nupsample_at = []"
     };
-    let text = format!(
-        r#"
-name = "reproducible"
-output_dir = "runs"
-[scene]
-kind = "synthetic"
-width = 40
-height = 30
-views = 6
-[field]
-kind = "{field}"
-{extra}
-[train]
-steps = 4
-rays_per_step = 512
-samples_per_ray = 48
-occupancy = false
-checkpoint_every = 0
-[segment]
-steps = 3
-patches = 2
-patch_size = 8
-stride = 2
-"#
-    );
-    let config = RunConfig::parse(&text, Path::new("reproducible.toml")).unwrap();
-    let dir = std::env::temp_dir().join(format!("sos-reproducible-{field}-{threads}-{}", std::process::id()));
-    Session::from_config(config, &dir).unwrap()
+    tiny_session(field, "object-centric", keys, 4, &format!("reproducible-{threads}"))
 }
 
 /// Both stages in a pool of `threads`: the field's state and the head's bytes.

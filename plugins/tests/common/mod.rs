@@ -1,0 +1,41 @@
+//! A tiny two-stage run on the built-in synthetic scene (40x30 views, a few steps of each
+//! stage), shared by the integration tests.
+
+use std::path::Path;
+
+use sos_core::config::RunConfig;
+use sos_core::train::Session;
+
+/// A session of `field` on the `rig` camera rig with the extra `[field]` lines `field_keys`,
+/// training stage 1 for `steps` steps; its run folder is unique to `tag` and this process.
+pub fn tiny_session(field: &str, rig: &str, field_keys: &str, steps: usize, tag: &str) -> Session {
+    let text = format!(
+        r#"
+name = "tiny"
+output_dir = "runs"
+[scene]
+kind = "synthetic"
+rig = "{rig}"
+width = 40
+height = 30
+views = 6
+[field]
+kind = "{field}"
+{field_keys}
+[train]
+steps = {steps}
+rays_per_step = 512
+samples_per_ray = 48
+occupancy = false
+checkpoint_every = 0
+[segment]
+steps = 3
+patches = 2
+patch_size = 8
+stride = 2
+"#
+    );
+    let config = RunConfig::parse(&text, Path::new("tiny.toml")).unwrap();
+    let dir = std::env::temp_dir().join(format!("sos-tiny-{field}-{tag}-{}", std::process::id()));
+    Session::from_config(config, &dir).unwrap()
+}
