@@ -237,6 +237,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
             if bad_steps >= MAX_BAD_STEPS {
                 return Err(RunError::Diverged(format!("{MAX_BAD_STEPS} non-finite stage-2 steps in a row")));
             }
+            seg.reused.render.recycle(&mut r);
             seg.step += 1;
             continue;
         }
