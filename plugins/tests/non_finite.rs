@@ -1,12 +1,13 @@
 //! Non-finite losses and gradients: injected NaNs must skip the step (parameters untouched),
 //! training must continue once they stop, and a run of bad steps must stop with a clear error.
 
-use std::path::Path;
+mod common;
+
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 
+use common::tiny_session;
 use sos_core::camera::Vec3;
-use sos_core::config::RunConfig;
 use sos_core::error::RunError;
 use sos_core::plugin::{FieldTape, RadianceField};
 use sos_core::segment::train::{train_segmentation, Segmenter};
@@ -101,39 +102,12 @@ impl RadianceField for Poisoned {
 }
 
 fn session(steps: usize, field: &str) -> Session {
-    let text = format!(
-        r#"
-name = "non-finite"
-output_dir = "runs"
-[scene]
-kind = "synthetic"
-width = 40
-height = 30
-views = 6
-[field]
-kind = "{field}"
-{extra}
-[train]
-steps = {steps}
-rays_per_step = 256
-samples_per_ray = 48
-occupancy = false
-checkpoint_every = 0
-[segment]
-steps = 3
-patches = 2
-patch_size = 8
-stride = 2
-"#,
-        extra = if field == "nerf" {
-            "depth = 2\nwidth = 16\nskip = 0\nview_width = 8\ncoarse_samples = 8\nfine_samples = 8"
-        } else {
-            "resolution = [16, 16, 16]\ninitial_resolution = [16, 16, 16]\nupsample_at = []"
-        }
-    );
-    let config = RunConfig::parse(&text, Path::new("non_finite.toml")).unwrap();
-    let dir = std::env::temp_dir().join(format!("sos-non-finite-{field}-{steps}-{}", std::process::id()));
-    Session::from_config(config, &dir).unwrap()
+    let keys = if field == "nerf" {
+        "depth = 2\nwidth = 16\nskip = 0\nview_width = 8\ncoarse_samples = 8\nfine_samples = 8"
+    } else {
+        "resolution = [16, 16, 16]\ninitial_resolution = [16, 16, 16]\nupsample_at = []"
+    };
+    tiny_session(field, "object-centric", keys, steps, &format!("non-finite-{steps}"))
 }
 
 fn poison(session: &mut Session, inject: Inject, bad_steps: usize) -> Arc<AtomicUsize> {
