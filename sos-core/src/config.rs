@@ -144,7 +144,7 @@ impl Default for HeadConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum ForegroundRule {
-    /// The cluster with the higher mean teacher saliency (DINO's [CLS] attention, as the
+    /// The cluster with the higher mean teacher saliency (DINO's \[CLS\] attention, as the
     /// reference does, or the weight-free extractor's colour distinctness).
     Saliency,
     /// The cluster whose rendered 3D points lie nearer the point the training cameras look at.

@@ -7,8 +7,8 @@ use crate::image::RgbImage;
 use crate::registry::Registration;
 
 /// Features of one image: a `[channels, height, width]` grid (channel-first, as the reference's
-/// `f ∈ R^{B×C×h×w}`), a global [CLS]-like vector for pair mining, and optionally a saliency
-/// map (e.g. DINO's last-layer [CLS] attention) used to pick the foreground cluster.
+/// `f ∈ R^{B×C×h×w}`), a global \[CLS\]-like vector for pair mining, and optionally a saliency
+/// map (e.g. DINO's last-layer \[CLS\] attention) used to pick the foreground cluster.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FeatureMap {
     /// Number of channels.

@@ -445,7 +445,7 @@ impl Rendered {
     }
 
     /// Composites every ray: fills the per-sample weights and the per-ray colours. Extra
-    /// channels are composited afterwards from these weights ([`Rendered::composite_extra`]),
+    /// channels are composited afterwards from these weights (`Rendered::composite_extra`),
     /// or by the caller.
     pub fn composite(&mut self) {
         let n_rays = self.samples.n_rays();
