@@ -27,6 +27,9 @@ pub struct DensityPass {
     pub skipped_before: Vec<f32>,
     /// The field's state at the kept candidates, when the field has one and it fit the budget.
     pub state: Option<KeptState>,
+    /// Candidates whose density was evaluated (for profiling: early termination leaves out
+    /// what lies behind each ray's termination, but not all of a ray's last wave).
+    pub evaluated: usize,
 }
 
 /// The field's per-sample state at the kept candidates, in the order the waves kept them.
@@ -94,7 +97,8 @@ pub fn density_pass(
         }
         KeptState { values: buffer, dim, limit, row_of: vec![u32::MAX; n] }
     });
-    let mut pass = DensityPass { sigma: vec![0.0; n], keep: vec![false; n], skipped_before: vec![0.0; n], state: None };
+    let mut pass =
+        DensityPass { sigma: vec![0.0; n], keep: vec![false; n], skipped_before: vec![0.0; n], state: None, evaluated: 0 };
     // Optical depth at which the transmittance reaches `early_stop`.
     let stop_at = if early_stop > 0.0 { -early_stop.ln() } else { f32::INFINITY };
     let end_of = |r: usize| candidates.ray_start[r + 1] as usize;
@@ -119,6 +123,7 @@ pub fn density_pass(
                 idx.extend(rays[r].cursor as u32..stop as u32);
                 last += 1;
             }
+            pass.evaluated += idx.len();
             positions.clear();
             positions.extend(idx.iter().map(|&i| candidates.positions[i as usize]));
             values.clear();
@@ -305,6 +310,7 @@ mod tests {
             c.ray_start.push(c.t.len() as u32);
         }
         let pass = density_pass(&Ramp { with_state: true }, &c, 0.0, 0.0, usize::MAX, Vec::new());
+        assert_eq!(pass.evaluated, c.len());
         assert!(pass.sigma.iter().all(|&s| s == 10.0));
         assert!(pass.keep.iter().all(|&k| k));
         assert_eq!(pass.state.expect("within budget").values.len(), 3 * c.len());

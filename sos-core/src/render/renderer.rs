@@ -274,12 +274,13 @@ fn render_impl(
     };
     if std::env::var("SOS_PROFILE").is_ok() {
         eprintln!(
-            "render: march {:.3} density {:.3} filter {:.3} forward {:.3} (candidates {}, kept {})",
+            "render: march {:.3} density {:.3} filter {:.3} forward {:.3} (candidates {}, evaluated {}, kept {})",
             t_march,
             t_density - t_march,
             t_filter - t_density,
             timer.elapsed().as_secs_f64() - t_filter,
             n_candidates,
+            pass.evaluated,
             samples.len()
         );
     }
