@@ -220,17 +220,26 @@ fn selected_modes(default: &[&str]) -> Vec<Mode> {
         Ok(v) => v.split(',').map(str::to_owned).collect(),
         Err(_) => default.iter().map(|s| s.to_string()).collect(),
     };
+    names.iter().map(|n| mode_named(n)).collect()
+}
+
+/// The catalogue's mode called `name`; an unknown name stops the run (exit code 2).
+fn mode_named(name: &str) -> Mode {
     let all = catalogue();
-    names
-        .iter()
-        .map(|n| {
-            *all.iter().find(|m| m.name == n).unwrap_or_else(|| {
-                let known: Vec<&str> = all.iter().map(|m| m.name).collect();
-                eprintln!("unknown mode `{n}` in NERF_STAGE2_MODES; known: {}", known.join(", "));
-                std::process::exit(2);
-            })
-        })
-        .collect()
+    *all.iter().find(|m| m.name == name).unwrap_or_else(|| {
+        let known: Vec<&str> = all.iter().map(|m| m.name).collect();
+        eprintln!("unknown mode `{name}` in NERF_STAGE2_MODES; known: {}", known.join(", "));
+        std::process::exit(2);
+    })
+}
+
+/// The 64x64 patch of rays the `head` and `weights` probes render: training view 0, from
+/// pixel (40, 28).
+fn probe_patch(session: &Session) -> sos_core::render::rays::RayBatch {
+    use sos_core::render::rays::PatchGrid;
+    use sos_core::segment::patches::{patch_rays, Patch};
+    let grid = PatchGrid { col0: 40, row0: 28, size: 64, stride: 1 };
+    patch_rays(&session.scene, &[Patch { view: session.scene.train[0], grid }])
 }
 
 /// Trains stage 2 on the small scene (4 patches of 24x24) in each mode for each seed and
@@ -331,10 +340,8 @@ fn inference_skips(checkpoint: &Path, steps: usize) {
 fn head_phase(checkpoint: &Path, repeats: usize) {
     use rand::{Rng, SeedableRng};
     use sos_core::config::HeadConfig;
-    use sos_core::render::rays::PatchGrid;
     use sos_core::render::renderer::{render_with_seg_input, FrozenBuffers};
     use sos_core::segment::head::SegHead;
-    use sos_core::segment::patches::{patch_rays, Patch};
     let modes = selected_modes(&[
         "no-skipping",
         "weight-threshold-only",
@@ -354,9 +361,7 @@ fn head_phase(checkpoint: &Path, repeats: usize) {
     };
     for mode in &modes {
         let session = open(mode, 1, checkpoint);
-        let view = session.scene.train[0];
-        let grid = PatchGrid { col0: 40, row0: 28, size: 64, stride: 1 };
-        let rays = patch_rays(&session.scene, &[Patch { view, grid }]);
+        let rays = probe_patch(&session);
         let mut options = session.render_options(false);
         options.min_weight = mode.weight_threshold;
         let dim = session.field.seg_input_dim();
@@ -435,21 +440,9 @@ fn density_stats(checkpoint: &Path) {
 /// relative thresholds, and the fewest samples that carry a given share of each ray's weight.
 fn weight_spread(checkpoint: &Path) {
     use rand::SeedableRng;
-    use sos_core::render::rays::PatchGrid;
     use sos_core::render::renderer::render;
-    use sos_core::segment::patches::{patch_rays, Patch};
-    let mode = Mode {
-        name: "weights",
-        hierarchical: true,
-        occupancy: false,
-        early_stop: 0.0,
-        weight_threshold: 0.0,
-        ..ALL_SKIPS
-    };
-    let session = open(&mode, 1, checkpoint);
-    let view = session.scene.train[0];
-    let grid = PatchGrid { col0: 40, row0: 28, size: 64, stride: 1 };
-    let rays = patch_rays(&session.scene, &[Patch { view, grid }]);
+    let session = open(&mode_named("no-skipping"), 1, checkpoint);
+    let rays = probe_patch(&session);
     let options = session.render_options(false);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     let mut r = render(session.field.as_ref(), session.render_context(), &rays, options, false, &mut rng);

@@ -101,6 +101,13 @@ fn gather<T: Copy>(v: &[T], idx: &[u32]) -> Vec<T> {
     idx.iter().map(|&i| v[i as usize]).collect()
 }
 
+/// The inverse of [`gather`]: `out[idx[j]] = values[j]`.
+fn scatter<T: Copy>(values: &[T], idx: &[u32], out: &mut [T]) {
+    for (&i, &v) in idx.iter().zip(values) {
+        out[i as usize] = v;
+    }
+}
+
 impl NerfPpNet {
     /// A freshly initialised level.
     pub fn new(config: &NerfPpConfig, space: Space, seed: u64) -> Self {
@@ -156,8 +163,8 @@ impl Level for NerfPpNet {
 fn scatter_density_colour(idx: &[u32], scale: &[f32], d: &[f32], c: &[[f32; 3]], density: &mut [f32], rgb: &mut [[f32; 3]]) {
     for (j, &i) in idx.iter().enumerate() {
         density[i as usize] = d[j] * scale[j];
-        rgb[i as usize] = c[j];
     }
+    scatter(c, idx, rgb);
 }
 
 impl NerfPpNet {
@@ -344,9 +351,7 @@ impl RadianceField for NerfPpNet {
         for (net, idx, _, _) in self.parts(&s) {
             let mut c = vec![[0.0; 3]; idx.len()];
             net.colour_from_trunk(state, &gather(rows, idx), &[], &gather(directions, idx), &mut c, None);
-            for (j, &i) in idx.iter().enumerate() {
-                rgb[i as usize] = c[j];
-            }
+            scatter(&c, idx, rgb);
         }
         if let Some(seg) = seg_input {
             let (w, dim) = (self.fg.width(), self.seg_input_dim());

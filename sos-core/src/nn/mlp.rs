@@ -255,16 +255,12 @@ impl Mlp {
     /// # Shapes
     /// `dy`: `[n, out_dim]` with `n = tape.batch_size()`; returns `[n, in_dim]`.
     pub fn backward(&mut self, tape: &MlpTape, dy: &[f32], want_dx: bool) -> Option<Vec<f32>> {
-        self.backward_from(tape, &tape.input, dy, want_dx)
+        self.backward_with_input(tape, &tape.input, dy, want_dx)
     }
 
     /// [`Mlp::backward`] for a tape recorded by [`Mlp::forward_into_without_input`], with the
-    /// same input `x` it was given.
-    pub fn backward_with_input(&mut self, tape: &MlpTape, x: &[f32], dy: &[f32], want_dx: bool) -> Option<Vec<f32>> {
-        self.backward_from(tape, x, dy, want_dx)
-    }
-
-    fn backward_from(&mut self, tape: &MlpTape, input: &[f32], dy: &[f32], want_dx: bool) -> Option<Vec<f32>> {
+    /// same input it was given.
+    pub fn backward_with_input(&mut self, tape: &MlpTape, input: &[f32], dy: &[f32], want_dx: bool) -> Option<Vec<f32>> {
         let n = tape.n;
         let (in_dim, out_dim) = (self.in_dim(), self.out_dim());
         let num_layers = self.layers.len();

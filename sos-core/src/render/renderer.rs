@@ -178,7 +178,7 @@ fn evaluate(
     let n = samples.len();
     let mut density = vec![0.0; n];
     let mut rgb = vec![[0.0; 3]; n];
-    if !record && seg.budget > 0 {
+    if !record {
         let mut seg = seg.buffer(field, n, buffers);
         if !seg.is_empty() {
             field.forward_with_seg_input(&samples.positions, &samples.directions, &mut density, &mut rgb, &mut seg);
