@@ -16,6 +16,9 @@ use serde::{Deserialize, Serialize};
 /// Points per parallel task; fixed so that floating-point reductions are reproducible.
 const CHUNK: usize = 8192;
 
+/// Largest coordinate clustered as it is (2^50); see [`kmeans`].
+const HUGE: f32 = 1_125_899_906_842_624.0;
+
 /// Settings of [`kmeans`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -133,6 +136,18 @@ pub fn kmeans(
     }
     if let Some(i) = data.iter().position(|v| !v.is_finite()) {
         return Err(KMeansError::NonFinite { point: i / dim });
+    }
+    // Squared distances are f32: beyond ~1e18 they overflow, and every point then ties with
+    // every centre. Such data is clustered scaled down by a power of two (exact), then the
+    // centres and inertia are scaled back.
+    let largest = data.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    if largest > HUGE {
+        let scale = 2f32.powi(40 - largest.log2().ceil() as i32);
+        let scaled: Vec<f32> = data.iter().map(|v| v * scale).collect();
+        let mut r = kmeans(&scaled, dim, config)?;
+        r.centroids.iter_mut().for_each(|c| *c /= scale);
+        r.inertia /= f64::from(scale) * f64::from(scale);
+        return Ok(r);
     }
 
     let points = Points { data, dim };

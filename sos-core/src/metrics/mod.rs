@@ -14,7 +14,7 @@ mod ssim;
 
 pub use ari::adjusted_rand_index;
 pub use iou::{binary_iou, binary_iou_gray, mean_iou, BinaryIou, IouSummary};
-pub use psnr::{mean_psnr, mse, psnr_from_mse, psnr_of_mean_mse};
+pub use psnr::{mean_psnr, mse, psnr_from_mse, psnr_of_mean_mse, PSNR_MSE_FLOOR};
 pub use report::{ImageQualityReport, ImageQualityView, SegmentationReport, SegmentationView};
 pub use ssim::{ssim, ssim_planar, SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW};
 

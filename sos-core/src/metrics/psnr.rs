@@ -25,8 +25,15 @@ pub fn mse(a: &[f32], b: &[f32]) -> Result<f64, MetricError> {
     Ok(sum / a.len() as f64)
 }
 
-/// PSNR of images in `[0, 1]`: `−10·log10(mse)`; `+∞` for identical images.
+/// Smallest MSE a PSNR is computed from: identical images get 120 dB rather than `+∞`, which
+/// JSON cannot hold (it would be written as `null`) and which would make every mean infinite.
+pub const PSNR_MSE_FLOOR: f64 = 1e-12;
+
+/// PSNR of images in `[0, 1]`: `−10·log10(mse)`, at most 120 dB ([`PSNR_MSE_FLOOR`]); NaN for a
+/// NaN error.
 pub fn psnr_from_mse(mse: f64) -> f64 {
+    // Not `max`, which would turn a NaN error into 120 dB.
+    let mse = if mse < PSNR_MSE_FLOOR { PSNR_MSE_FLOOR } else { mse };
     -10.0 * mse.log10()
 }
 
@@ -37,7 +44,7 @@ pub fn psnr_of_mean_mse(mses: &[f64]) -> Option<f64> {
 }
 
 /// The offline script's PSNR: the mean of the per-image PSNRs (`None` for no images).
-/// Never below [`psnr_of_mean_mse`] (Jensen), and `+∞` if any image is reproduced exactly.
+/// Never below [`psnr_of_mean_mse`] (Jensen); an exactly reproduced image counts 120 dB.
 pub fn mean_psnr(mses: &[f64]) -> Option<f64> {
     (!mses.is_empty())
         .then(|| mses.iter().map(|&m| psnr_from_mse(m)).sum::<f64>() / mses.len() as f64)
@@ -69,7 +76,7 @@ mod tests {
         assert!((mean_psnr(&mses).unwrap() - 30.0).abs() < 1e-12);
         assert_eq!(psnr_of_mean_mse(&[]), None);
         assert_eq!(mean_psnr(&[]), None);
-        assert_eq!(psnr_from_mse(0.0), f64::INFINITY);
+        assert_eq!(psnr_from_mse(0.0), 120.0);
         assert!(mse(&[0.0], &[0.0, 1.0]).is_err());
         assert!(mse(&[], &[]).is_err());
         assert_eq!(mse(&[0.0, 1.0], &[0.5, 0.0]).unwrap(), 0.625);

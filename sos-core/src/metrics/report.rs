@@ -111,7 +111,7 @@ pub struct ImageQualityView {
     pub name: String,
     /// Mean squared error over pixels and channels.
     pub mse: f64,
-    /// `−10·log10(mse)` (`+∞`, serialised as `null`, for an exact reproduction).
+    /// `−10·log10(mse)` (120 dB for an exact reproduction, see [`super::PSNR_MSE_FLOOR`]).
     pub psnr: f64,
     /// SSIM (Gaussian window, see [`super::ssim`]).
     pub ssim: f64,

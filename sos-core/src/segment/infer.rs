@@ -124,6 +124,12 @@ pub fn cluster_logits(
     let mut values = if masks.softmax { softmax_rows(logits, d) } else { logits.to_vec() };
     if masks.normalize {
         for row in values.chunks_exact_mut(d) {
+            if !row.iter().map(|v| v * v).sum::<f32>().is_finite() {
+                // The squares overflow (logits beyond ~1e19): scale the row down first, or
+                // it would divide by an infinite norm to zero.
+                let largest = row.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+                row.iter_mut().for_each(|v| *v /= largest);
+            }
             let norm = row.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-10);
             row.iter_mut().for_each(|v| *v /= norm);
         }

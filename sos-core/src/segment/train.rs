@@ -18,6 +18,7 @@ use crate::segment::head::SegHead;
 use crate::segment::head_pass::{self, HeadSamples};
 use crate::segment::patches::{patch_rays, Patch, PatchSampler};
 use crate::segment::teacher::{captured_patch, Teacher};
+use crate::train::observer::{TrainObserver, Unobserved};
 use crate::train::progress::log_line;
 use crate::train::session::{kind_of, Session};
 
@@ -147,6 +148,16 @@ pub fn fill_empty_depths(depth: &mut [f32]) {
 
 /// Runs stage 2 for `segment.steps` steps.
 pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progress: bool) -> Result<SegStepStats, RunError> {
+    train_segmentation_observed(session, seg, show_progress, &mut Unobserved)
+}
+
+/// [`train_segmentation`], calling `observer` after every step.
+pub fn train_segmentation_observed(
+    session: &mut Session,
+    seg: &mut Segmenter,
+    show_progress: bool,
+    observer: &mut dyn TrainObserver,
+) -> Result<SegStepStats, RunError> {
     let cfg = session.config.segment.clone();
     let joint = cfg.photometric_weight > 0.0;
     let n_patches = cfg.patches;
@@ -292,6 +303,7 @@ pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progr
         seg.reused.render.recycle(&mut r);
         seg.step += 1;
         last = stats;
+        observer.stage2_step(session, seg, &last)?;
         let elapsed = started.elapsed().as_secs_f64();
         bar.set_message(format!(
             "loss {:+.4}  {:.1} s/step  {:.0} head samples/ray  cache {}/{}",

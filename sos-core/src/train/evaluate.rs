@@ -5,8 +5,7 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::error::RunError;
-use crate::metrics::ImageQualityReport;
-use crate::train::photometric::psnr_of_mse;
+use crate::metrics::{psnr_from_mse, ImageQualityReport};
 use crate::train::session::Session;
 
 /// Quality of one held-out view.
@@ -55,13 +54,14 @@ pub fn evaluate_views(session: &Session, write_images: bool) -> Result<ImageEval
         let ssim = crate::metrics::ssim(&img, &v.image).map_err(|e| {
             crate::error::IoError::file(&session.run_dir, format!("SSIM of view {}: {e}", v.name))
         })?;
-        views.push(ViewQuality { view: v.name.clone(), psnr: psnr_of_mse(mse), mse, ssim });
+        // Floored at 120 dB for an exact view; a NaN render stays NaN, never a perfect score.
+        views.push(ViewQuality { view: v.name.clone(), psnr: psnr_from_mse(mse), mse, ssim });
     }
     let elapsed = started.elapsed().as_secs_f64().max(1e-9);
     let n = views.len().max(1) as f64;
     let mean_mse = views.iter().map(|v| v.mse).sum::<f64>() / n;
     Ok(ImageEval {
-        psnr: psnr_of_mse(mean_mse),
+        psnr: psnr_from_mse(mean_mse),
         psnr_mean_per_view: views.iter().map(|v| v.psnr).sum::<f64>() / n,
         ssim: views.iter().map(|v| v.ssim).sum::<f64>() / n,
         views,
@@ -91,6 +91,7 @@ impl ImageEval {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::metrics::psnr_from_mse as psnr_of_mse;
 
     /// A summary taken from another pass's report carries its per-view values and both PSNR
     /// conventions unchanged.

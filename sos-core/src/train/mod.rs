@@ -3,6 +3,7 @@
 pub mod checkpoint;
 pub mod evaluate;
 pub mod memory;
+pub mod observer;
 pub mod photometric;
 pub mod progress;
 pub mod session;

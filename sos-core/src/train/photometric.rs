@@ -9,6 +9,7 @@ use crate::error::RunError;
 use crate::render::composite::{RayColor, RayGrad};
 use crate::render::rays::RayBatch;
 use crate::render::renderer::render;
+use crate::train::observer::{TrainObserver, Unobserved};
 use crate::train::progress::log_line;
 use crate::train::session::Session;
 
@@ -26,12 +27,6 @@ pub struct StepStats {
     pub samples_per_ray: f64,
     /// Mean opacity of the batch's rays.
     pub opacity: f64,
-}
-
-/// PSNR of a mean squared error on `[0, 1]` images, floored at 120 dB so that a perfect
-/// batch or view stays a finite number in logs and JSON.
-pub fn psnr_of_mse(mse: f64) -> f64 {
-    crate::metrics::psnr_from_mse(mse.max(1e-12))
 }
 
 /// MSE over a batch's rays and the per-ray gradients (`scale · (c − target)` per channel), with
@@ -86,6 +81,15 @@ fn describe_bad_rays(fine: &[RayColor], coarse: Option<&[RayColor]>, pixels: &[(
 
 /// Runs stage 1 from `session.step` to `train.steps`, checkpointing along the way.
 pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<StepStats, RunError> {
+    train_photometric_observed(session, show_progress, &mut Unobserved)
+}
+
+/// [`train_photometric`], calling `observer` after every step.
+pub fn train_photometric_observed(
+    session: &mut Session,
+    show_progress: bool,
+    observer: &mut dyn TrainObserver,
+) -> Result<StepStats, RunError> {
     let total = session.config.train.steps;
     let n_rays = session.config.train.rays_per_step;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed.wrapping_add(session.step as u64));
@@ -212,7 +216,7 @@ pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<S
 
         last = StepStats {
             mse,
-            psnr: psnr_of_mse(mse),
+            psnr: crate::metrics::psnr_from_mse(mse),
             samples_per_ray: r.samples.len() as f64 / n_rays as f64,
             opacity: r.colors.iter().map(|c| c.acc as f64).sum::<f64>() / n_rays as f64,
         };
@@ -230,6 +234,7 @@ pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<S
                 started.elapsed().as_secs_f64()
             );
         }
+        observer.stage1_step(session, &last)?;
         let every = session.config.train.checkpoint_every;
         if every > 0 && session.step % every == 0 && session.step < total {
             session.save_checkpoint()?;

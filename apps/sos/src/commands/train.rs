@@ -77,8 +77,12 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The held-out quality line.
+/// The held-out quality line (a notice instead when the scene holds out no views).
 fn print_image_eval(eval: &ImageEval) {
+    if eval.views.is_empty() {
+        println!("no held-out views: PSNR and SSIM not measured (set the scene's hold-out, e.g. `hold_out_every`)");
+        return;
+    }
     println!(
         "held-out PSNR {:.2} dB (mean of per-view {:.2} dB), SSIM {:.4}, over {} views",
         eval.psnr,

@@ -1,0 +1,178 @@
+//! The `sos bench` command line.
+
+use std::path::PathBuf;
+
+use anyhow::{anyhow, bail};
+use clap::{Args, Subcommand};
+
+pub use super::exec::ExecArgs;
+use super::matrix::{plan, shard};
+use super::runner::{run_all, BenchMeta};
+use super::spec::BenchFile;
+use super::{merge, record, report};
+
+/// `sos bench`.
+#[derive(Debug, Args)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
+pub struct BenchArgs {
+    #[command(subcommand)]
+    action: Option<BenchAction>,
+    /// Benchmark file (e.g. `benchmarks/run_all.toml`).
+    #[arg(required = true)]
+    file: Option<PathBuf>,
+    /// Profile to run (default: the file's `bench.default_profile`, else everything).
+    #[arg(long)]
+    profile: Option<String>,
+    /// Result folder (default: the file's `bench.out`/<profile>).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Run only slice I of N of the matrix (`0/2`, `1/2`), e.g. one task of a job array.
+    #[arg(long, value_name = "I/N")]
+    shard: Option<String>,
+    /// Also write the summary table and plot into this README (between its
+    /// `<!-- sos-bench:<profile>:begin/end -->` markers).
+    #[arg(long)]
+    readme: Option<PathBuf>,
+    /// Print the matrix (run ids, skips) and stop.
+    #[arg(long)]
+    list: bool,
+}
+
+#[derive(Debug, Subcommand)]
+enum BenchAction {
+    /// Merge result folders (e.g. of sharded runs) into one folder and write its report.
+    Merge {
+        /// Result folders.
+        #[arg(required = true)]
+        dirs: Vec<PathBuf>,
+        /// The merged folder.
+        #[arg(long)]
+        out: PathBuf,
+        /// Also fill this README's block for the profile.
+        #[arg(long)]
+        readme: Option<PathBuf>,
+    },
+    /// Compare the metrics of every run of two result folders (exit code 2 when they differ).
+    Diff {
+        /// First result folder.
+        a: PathBuf,
+        /// Second result folder.
+        b: PathBuf,
+    },
+}
+
+/// Runs `sos bench`.
+pub fn run(args: BenchArgs, progress: bool) -> anyhow::Result<()> {
+    match args.action {
+        Some(BenchAction::Merge { dirs, out, readme }) => {
+            let report = merge::merge(&dirs, &out)?;
+            println!("merged {} folders into {}", dirs.len(), out.join("report.md").display());
+            if let Some(readme) = readme {
+                report::update_readme(&readme, &report, &out)?;
+            }
+            Ok(())
+        }
+        Some(BenchAction::Diff { a, b }) => merge::diff(&a, &b),
+        None => {
+            let file_path =
+                args.file.ok_or_else(|| anyhow!("name a benchmark file, e.g. `sos bench benchmarks/run_all.toml`"))?;
+            run_file(
+                &file_path,
+                args.profile.as_deref(),
+                args.out,
+                args.shard.as_deref(),
+                args.readme,
+                args.list,
+                progress,
+            )
+        }
+    }
+}
+
+fn parse_shard(text: &str) -> anyhow::Result<(usize, usize)> {
+    let parsed = text.split_once('/').and_then(|(i, n)| Some((i.trim().parse().ok()?, n.trim().parse().ok()?)));
+    match parsed {
+        Some((i, n)) if n > 0 && i < n => Ok((i, n)),
+        _ => bail!("`--shard {text}`: write I/N with 0 <= I < N, e.g. `--shard 0/2`"),
+    }
+}
+
+fn run_file(
+    file_path: &std::path::Path,
+    profile: Option<&str>,
+    out: Option<PathBuf>,
+    shard_arg: Option<&str>,
+    readme: Option<PathBuf>,
+    list: bool,
+    progress: bool,
+) -> anyhow::Result<()> {
+    let shard_of = shard_arg.map(parse_shard).transpose()?;
+    let file = BenchFile::load(file_path)?;
+    let profile_name =
+        profile.map(str::to_owned).or_else(|| file.bench.default_profile.clone()).unwrap_or_else(|| "all".into());
+    let out = out.unwrap_or_else(|| file.dir().join(&file.bench.out).join(&profile_name));
+    // Generated scenes are named by absolute path in the run configs, whose relative paths
+    // resolve against the scene config's folder, not the working directory.
+    let out = std::path::absolute(&out).map_err(|e| anyhow!("`--out {}`: {e}", out.display()))?;
+    let matrix = plan(&file, profile, &out)?;
+    let total = matrix.runs.len();
+    let curve_points = matrix.curve_points;
+    let runs = match shard_of {
+        Some((i, n)) => shard(matrix.runs, i, n),
+        None => matrix.runs,
+    };
+    let skips = runs.iter().filter(|r| r.skip.is_some()).count();
+    eprintln!(
+        "benchmark {}, profile `{}`: {} runs{} ({} skipped here), results in {}",
+        file_path.display(),
+        matrix.profile,
+        runs.len(),
+        shard_arg.map_or(String::new(), |s| format!(" (shard {s} of {total})")),
+        skips,
+        out.display()
+    );
+    if list {
+        for r in &runs {
+            println!(
+                "{}  {}{}",
+                r.id,
+                &r.hash[..12],
+                r.skip.as_ref().map_or(String::new(), |s| format!("  skipped: {s}"))
+            );
+        }
+        return Ok(());
+    }
+    let meta = BenchMeta {
+        file: file_path.display().to_string(),
+        profile: matrix.profile.clone(),
+        baseline: file.bench.baseline.clone(),
+        shard: shard_arg.map(str::to_owned),
+        matrix_runs: total,
+    };
+    let commit = record::commit_of(&file.dir());
+    let tally = run_all(&runs, &out, &meta, curve_points, &commit, progress)?;
+    println!(
+        "{} ran, {} cached, {} skipped, {} failed; report in {}",
+        tally.ran,
+        tally.cached,
+        tally.skipped,
+        tally.failed.len(),
+        out.join("report.md").display()
+    );
+    if let Some(readme) = readme {
+        let records = record::load_all(&out)?;
+        let ids: std::collections::BTreeSet<&str> = runs.iter().map(|r| r.id.as_str()).collect();
+        let mine: Vec<_> = records.into_iter().filter(|r| ids.contains(r.id.as_str())).collect();
+        report::update_readme(&readme, &report::build(&mine, &meta), &out)?;
+        println!("updated {}", readme.display());
+    }
+    if !tally.failed.is_empty() {
+        bail!(
+            "{} runs failed: {} (their errors are in the report and in {}/logs)",
+            tally.failed.len(),
+            tally.failed.join(", "),
+            out.display()
+        );
+    }
+    Ok(())
+}

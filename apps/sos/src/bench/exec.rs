@@ -1,0 +1,198 @@
+//! One benchmark run in its own process (`sos bench-exec`): both stages as `sos train` runs
+//! them, with learning curves sampled between steps, then the outcome as JSON. A process per
+//! run gives each its own peak-memory figure, and a crash of one run ends only that run.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use sos_core::error::RunError;
+use sos_core::segment::evaluate::{evaluate_masks, MaskEval};
+use sos_core::segment::infer::MaskInference;
+use sos_core::segment::store::{save_with_head, HeadMeta};
+use sos_core::segment::train::{train_segmentation_observed, SegStepStats, Segmenter};
+use sos_core::train::evaluate::evaluate_views;
+use sos_core::train::observer::TrainObserver;
+use sos_core::train::photometric::{train_photometric_observed, StepStats};
+use sos_core::train::Session;
+
+use super::record::{peak_rss_mib, Curves, Metrics, Outcome, Stage1Point, Stage2Point, Timing};
+
+/// Arguments of `sos bench-exec`.
+#[derive(Debug, clap::Args)]
+pub struct ExecArgs {
+    /// The resolved run config.
+    pub config: PathBuf,
+    /// Folder the config's relative paths resolve against.
+    #[arg(long)]
+    pub config_dir: PathBuf,
+    /// Where to write the outcome (JSON).
+    #[arg(long)]
+    pub outcome: PathBuf,
+    /// Learning-curve samples per stage.
+    #[arg(long, default_value_t = 0)]
+    pub curve_points: usize,
+}
+
+/// Runs one benchmark run and writes its outcome.
+pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
+    let started = Instant::now();
+    let text = std::fs::read_to_string(&args.config).with_context(|| format!("reading {}", args.config.display()))?;
+    let config = sos_core::config::RunConfig::parse(&text, &args.config)?;
+    let mut session = Session::from_config(config, &args.config_dir)?;
+    let segmenter = if session.config.segment.steps > 0 { Some(Segmenter::build(&session)?) } else { None };
+    let mut timing = Timing { setup: started.elapsed().as_secs_f64(), ..Default::default() };
+    let mut curves = CurveRecorder::new(args.curve_points, &session, segmenter.is_some());
+
+    let stage1 = Instant::now();
+    curves.begin_stage();
+    train_photometric_observed(&mut session, false, &mut curves)?;
+    timing.stage1 = stage1.elapsed().as_secs_f64() - curves.stage1_eval;
+    let mut notes = Vec::new();
+    let metrics = match segmenter {
+        None => {
+            let t = Instant::now();
+            let eval = evaluate_views(&session, session.config.render.test_views)?;
+            timing.masks = t.elapsed().as_secs_f64();
+            Metrics {
+                psnr: finite(eval.psnr, "PSNR", &mut notes),
+                ssim: finite(eval.ssim, "SSIM", &mut notes),
+                ..Default::default()
+            }
+        }
+        Some(mut seg) => {
+            let stage2 = Instant::now();
+            curves.begin_stage();
+            train_segmentation_observed(&mut session, &mut seg, false, &mut curves)?;
+            timing.stage2 = stage2.elapsed().as_secs_f64() - curves.stage2_eval;
+            save_with_head(&session, &seg.head, HeadMeta { steps: seg.step })
+                .context("saving the segmentation head")?;
+            let t = Instant::now();
+            let inference = MaskInference::new(&session, &seg.head, Some(seg.teacher.extractor()))?;
+            let eval = evaluate_masks(&session, &inference, true)?;
+            timing.masks = t.elapsed().as_secs_f64();
+            mask_metrics(&eval, &mut notes)
+        }
+    };
+    curves.finish(&metrics, timing.stage1, timing.stage2);
+    if session.scene.test.is_empty() {
+        notes.push("the scene holds out no views: no held-out metrics".into());
+    }
+    timing.curve_eval = curves.stage1_eval + curves.stage2_eval;
+    timing.total = started.elapsed().as_secs_f64() - timing.curve_eval;
+    let outcome = Outcome { metrics, timing, peak_rss_mib: peak_rss_mib(), curves: curves.curves, notes };
+    crate::commands::write_json(&args.outcome, &outcome)
+}
+
+/// `Some(v)` for a finite value; otherwise a note and `None`, so that no report shows NaN.
+fn finite(v: f64, name: &str, notes: &mut Vec<String>) -> Option<f64> {
+    if v.is_finite() {
+        Some(v)
+    } else {
+        notes.push(format!("{name} was not finite ({v})"));
+        None
+    }
+}
+
+fn finite_opt(v: Option<f64>, name: &str, notes: &mut Vec<String>) -> Option<f64> {
+    v.and_then(|v| finite(v, name, notes))
+}
+
+/// The held-out metrics of a mask pass.
+fn mask_metrics(eval: &MaskEval, notes: &mut Vec<String>) -> Metrics {
+    let iou = eval.segmentation.iou();
+    Metrics {
+        psnr: finite_opt(eval.image.psnr_of_mean_mse(), "PSNR", notes),
+        ssim: finite_opt(eval.image.mean_ssim(), "SSIM", notes),
+        nv_ari: finite_opt(eval.segmentation.mean_ari(), "NV-ARI", notes),
+        iou_fg: finite_opt(iou.iou_fg, "IoU FG", notes),
+        iou_bg: finite_opt(iou.iou_bg, "IoU BG", notes),
+        miou: finite_opt(iou.miou, "mIoU", notes),
+    }
+}
+
+/// Samples held-out quality at evenly spaced steps of each stage and keeps its own
+/// evaluation time apart from the training clock. The last point of each curve is the run's
+/// final evaluation, so it costs nothing extra.
+struct CurveRecorder {
+    points: usize,
+    stage1_steps: usize,
+    stage2_steps: usize,
+    stage_start: Instant,
+    stage1_eval: f64,
+    stage2_eval: f64,
+    curves: Curves,
+}
+
+impl CurveRecorder {
+    fn new(points: usize, session: &Session, stage2: bool) -> CurveRecorder {
+        CurveRecorder {
+            points,
+            stage1_steps: session.config.train.steps,
+            stage2_steps: if stage2 { session.config.segment.steps } else { 0 },
+            stage_start: Instant::now(),
+            stage1_eval: 0.0,
+            stage2_eval: 0.0,
+            curves: Curves::default(),
+        }
+    }
+
+    /// Starts a stage's training clock.
+    fn begin_stage(&mut self) {
+        self.stage_start = Instant::now();
+    }
+
+    /// Whether `step` (1-based, of `total`) is a sampled step other than the last.
+    fn sampled(&self, step: usize, total: usize) -> bool {
+        self.points > 1 && step < total && (1..self.points).any(|i| (total * i).div_ceil(self.points) == step)
+    }
+
+    /// The final points, from the run's own evaluation.
+    fn finish(&mut self, metrics: &Metrics, stage1_seconds: f64, stage2_seconds: f64) {
+        if self.points == 0 {
+            return;
+        }
+        self.curves.stage1.push(Stage1Point { step: self.stage1_steps, seconds: stage1_seconds, psnr: metrics.psnr });
+        if self.stage2_steps > 0 {
+            self.curves.stage2.push(Stage2Point {
+                step: self.stage2_steps,
+                seconds: stage2_seconds,
+                miou: metrics.miou,
+                nv_ari: metrics.nv_ari,
+            });
+        }
+    }
+}
+
+impl TrainObserver for CurveRecorder {
+    fn stage1_step(&mut self, session: &Session, _stats: &StepStats) -> Result<(), RunError> {
+        if !self.sampled(session.step, self.stage1_steps) {
+            return Ok(());
+        }
+        let t = Instant::now();
+        let seconds = self.stage_start.elapsed().as_secs_f64() - self.stage1_eval;
+        let eval = evaluate_views(session, false)?;
+        self.curves.stage1.push(Stage1Point {
+            step: session.step,
+            seconds,
+            psnr: eval.psnr.is_finite().then_some(eval.psnr),
+        });
+        self.stage1_eval += t.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    fn stage2_step(&mut self, session: &Session, seg: &Segmenter, _stats: &SegStepStats) -> Result<(), RunError> {
+        if !self.sampled(seg.step, self.stage2_steps) {
+            return Ok(());
+        }
+        let t = Instant::now();
+        let seconds = self.stage_start.elapsed().as_secs_f64() - self.stage2_eval;
+        let inference = MaskInference::new(session, &seg.head, Some(seg.teacher.extractor()))?;
+        let eval = evaluate_masks(session, &inference, false)?;
+        let mut ignored = Vec::new();
+        let m = mask_metrics(&eval, &mut ignored);
+        self.curves.stage2.push(Stage2Point { step: seg.step, seconds, miou: m.miou, nv_ari: m.nv_ari });
+        self.stage2_eval += t.elapsed().as_secs_f64();
+        Ok(())
+    }
+}

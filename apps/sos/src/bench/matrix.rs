@@ -1,0 +1,514 @@
+//! The matrix of a benchmark profile: every (scene, method or sweep point, seed) as a fully
+//! resolved run config with its hash, checked before any run starts.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{anyhow, bail, Context};
+use sha2::{Digest, Sha256};
+use sos_core::config::RunConfig;
+use sos_datasets::layouts::Format;
+use sos_datasets::synthetic::SyntheticConfig;
+use toml::{Table, Value};
+
+use super::overlay::{self, OverlayError};
+use super::spec::{names, BenchFile, SweepMode, SweepSpec};
+
+/// Where a run sits in a sweep.
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize, PartialEq)]
+pub struct SweepCoord {
+    /// The sweep's name.
+    pub name: String,
+    /// The point's label.
+    pub label: String,
+    /// Position of the point in the sweep.
+    pub index: usize,
+    /// The point's number when the sweep varies one numeric key (the plots' x axis).
+    pub x: Option<f64>,
+}
+
+/// A synthetic scene to write in a dataset layout before the runs that read it.
+#[derive(Debug, Clone)]
+pub struct Generate {
+    /// The layout.
+    pub layout: Format,
+    /// The scene.
+    pub synthetic: SyntheticConfig,
+    /// The spec as written (part of the run hash).
+    pub spec: Table,
+}
+
+impl Generate {
+    /// The folder a layout is written to, under the benchmark's output folder.
+    pub fn dir(&self, out: &Path) -> PathBuf {
+        out.join("scenes").join(format!(
+            "{}-{}",
+            self.layout.name(),
+            &hash_text(&toml::to_string(&self.spec).unwrap_or_default())[..12]
+        ))
+    }
+}
+
+/// One run of the matrix.
+#[derive(Debug, Clone)]
+pub struct PlannedRun {
+    /// `<scene>__<variant>__s<seed>`: the record's file name.
+    pub id: String,
+    /// Scene name.
+    pub scene: String,
+    /// Method name (for a sweep point: the method it varies).
+    pub method: String,
+    /// The row of the report: the method, or `<sweep>: <label>`.
+    pub variant: String,
+    /// The sweep point, if any.
+    pub sweep: Option<SweepCoord>,
+    /// The run's seed.
+    pub seed: u64,
+    /// The folder the config's relative paths resolve against.
+    pub config_dir: PathBuf,
+    /// A layout to write first.
+    pub generate: Option<Generate>,
+    /// The resolved config (without `name` and `output_dir`, which the runner sets).
+    pub config: Value,
+    /// Hash of everything that decides the run's result.
+    pub hash: String,
+    /// Why the run cannot happen here (missing data or weights, a kind not built in).
+    pub skip: Option<String>,
+}
+
+/// The planned runs of a profile, sorted by id.
+pub struct Matrix {
+    /// The profile's name (`all` when the file has none).
+    pub profile: String,
+    /// Learning-curve samples per stage.
+    pub curve_points: usize,
+    /// Every run.
+    pub runs: Vec<PlannedRun>,
+}
+
+/// Resolves the matrix of `profile` (the file's default profile when `None`). Every overlay
+/// is applied and every resulting config parsed here, so a bad key path fails before any run.
+pub fn plan(file: &BenchFile, profile: Option<&str>, out: &Path) -> anyhow::Result<Matrix> {
+    let fpath = file.path.display().to_string();
+    let profile_name = profile.map(str::to_owned).or_else(|| file.bench.default_profile.clone());
+    let prof = match &profile_name {
+        Some(p) => Some(
+            file.profiles
+                .get(p)
+                .ok_or_else(|| anyhow!("{fpath}: no profile `{p}`; profiles: {}", names(file.profiles.keys())))?,
+        ),
+        None => None,
+    };
+    let scenes: Vec<String> =
+        prof.and_then(|p| p.scenes.clone()).unwrap_or_else(|| file.scenes.keys().cloned().collect());
+    let methods: Vec<String> =
+        prof.and_then(|p| p.methods.clone()).unwrap_or_else(|| file.methods.keys().cloned().collect());
+    let sweeps: Vec<&SweepSpec> = match prof {
+        Some(p) => {
+            p.sweeps.iter().map(|n| file.sweep.iter().find(|s| &s.name == n).expect("checked on load")).collect()
+        }
+        None => file.sweep.iter().collect(),
+    };
+    let seeds = prof.and_then(|p| p.seeds.clone()).unwrap_or_else(|| file.bench.seeds.clone());
+    if seeds.is_empty() {
+        bail!("{fpath}: no seeds to run");
+    }
+    let curve_points = prof.and_then(|p| p.curve_points).unwrap_or(file.bench.curve_points);
+    let empty = Table::new();
+    let profile_set = prof.map_or(&empty, |p| &p.set);
+
+    let mut runs = Vec::new();
+    for scene_name in &scenes {
+        let scene = &file.scenes[scene_name];
+        let base_path = file.dir().join(&scene.config);
+        let base = RunConfig::load(&base_path).with_context(|| format!("{fpath}: scene `{scene_name}`"))?;
+        let config_dir = base_path.parent().map(Path::to_path_buf).unwrap_or_default();
+        let mut value = Value::try_from(overlay::resolve(base)).context("serialising a run config")?;
+        let generate = scene
+            .generate
+            .as_ref()
+            .map(|g| parse_generate(g).with_context(|| format!("{fpath}: scene `{scene_name}`, `generate`")))
+            .transpose()?;
+        let mut scene_skip = None;
+        for (what, set) in [("scene", &scene.set), ("profile", profile_set)] {
+            if let Err(e) = overlay::apply(&mut value, set) {
+                match e {
+                    OverlayError::Unregistered { .. } => scene_skip = Some(e.to_string()),
+                    OverlayError::Path { .. } => bail!("{fpath}: scene `{scene_name}`, {what} overrides: {e}"),
+                }
+            }
+        }
+        if let Some(g) = &generate {
+            let dir = g.layout.scene_dir(&g.dir(out));
+            overlay::set(&mut value, "scene.path", Value::String(dir.display().to_string()))
+                .with_context(|| format!("{fpath}: scene `{scene_name}`: a generated scene needs a `path` key"))?;
+        }
+        let context = RunContext {
+            file,
+            scene: scene_name,
+            config_dir: &config_dir,
+            generate: generate.as_ref(),
+            skip: scene_skip,
+            curve_points,
+        };
+        for method in &methods {
+            let points = vec![Point { label: String::new(), set: file.methods[method].set.clone(), x: None }];
+            for seed in &seeds {
+                runs.extend(context.runs(&value, method, None, &points, *seed)?);
+            }
+        }
+        for sweep in &sweeps {
+            if sweep.scenes.as_ref().is_some_and(|s| !s.contains(scene_name)) {
+                continue;
+            }
+            let method = sweep.method.clone().unwrap_or_else(|| file.bench.baseline.clone());
+            let mut with_method = value.clone();
+            overlay::apply(&mut with_method, &file.methods[&method].set)
+                .with_context(|| format!("{fpath}: method `{method}`"))?;
+            let points = sweep_points(sweep).with_context(|| format!("{fpath}: sweep `{}`", sweep.name))?;
+            for seed in &seeds {
+                runs.extend(context.runs(&with_method, &method, Some(sweep), &points, *seed)?);
+            }
+        }
+    }
+    runs.sort_by(|a, b| a.id.cmp(&b.id));
+    for w in runs.windows(2) {
+        if w[0].id == w[1].id {
+            bail!("{fpath}: two runs would share the id `{}` (two sweep points with one label?)", w[0].id);
+        }
+    }
+    Ok(Matrix { profile: profile_name.unwrap_or_else(|| "all".into()), curve_points, runs })
+}
+
+/// One overlay of a method or sweep point.
+struct Point {
+    label: String,
+    set: Table,
+    x: Option<f64>,
+}
+
+struct RunContext<'a> {
+    file: &'a BenchFile,
+    scene: &'a str,
+    config_dir: &'a Path,
+    generate: Option<&'a Generate>,
+    skip: Option<String>,
+    curve_points: usize,
+}
+
+impl RunContext<'_> {
+    /// The runs of `points` on top of `base` (a scene config with its method applied, for a
+    /// sweep) at one seed.
+    fn runs(
+        &self,
+        base: &Value,
+        method: &str,
+        sweep: Option<&SweepSpec>,
+        points: &[Point],
+        seed: u64,
+    ) -> anyhow::Result<Vec<PlannedRun>> {
+        let fpath = self.file.path.display();
+        let mut out = Vec::new();
+        for (index, point) in points.iter().enumerate() {
+            let whose = match sweep {
+                Some(s) => format!("sweep `{}`, point `{}`", s.name, point.label),
+                None => format!("method `{method}`"),
+            };
+            let mut value = base.clone();
+            let mut skip = self.skip.clone();
+            match overlay::apply(&mut value, &point.set) {
+                Ok(()) => {}
+                Err(e @ OverlayError::Unregistered { .. }) => skip = skip.or(Some(e.to_string())),
+                Err(e) => bail!("{fpath}: scene `{}`, {whose}: {e}", self.scene),
+            }
+            overlay::set(&mut value, "seed", Value::Integer(seed as i64)).expect("the root is a table");
+            let config = if skip.is_none() {
+                match check(&value) {
+                    Ok(v) => v,
+                    Err(message) => {
+                        let culprit =
+                            culprit(base, &point.set).map(|p| format!("key path `{p}`: ")).unwrap_or_default();
+                        bail!("{fpath}: scene `{}`, {whose}: {culprit}{message}", self.scene)
+                    }
+                }
+            } else {
+                value
+            };
+            if skip.is_none() {
+                skip = missing_files(&config, self.config_dir, self.generate.is_some());
+            }
+            let (variant, coord, slug) = match sweep {
+                Some(s) => (
+                    format!("{}: {}", s.name, point.label),
+                    Some(SweepCoord { name: s.name.clone(), label: point.label.clone(), index, x: point.x }),
+                    format!("{}-{index}-{}", s.name, slug(&point.label)),
+                ),
+                None => (method.to_string(), None, method.to_string()),
+            };
+            let hash = run_hash(&config, self.generate, self.curve_points);
+            out.push(PlannedRun {
+                id: format!("{}__{slug}__s{seed}", self.scene),
+                scene: self.scene.to_string(),
+                method: method.to_string(),
+                variant,
+                sweep: coord,
+                seed,
+                config_dir: self.config_dir.to_path_buf(),
+                generate: self.generate.cloned(),
+                config,
+                hash,
+                skip,
+            });
+        }
+        Ok(out)
+    }
+}
+
+/// Parses a config value as a run config (every section rejects unknown keys, every range is
+/// checked) and returns it in canonical form.
+fn check(value: &Value) -> Result<Value, String> {
+    let text = toml::to_string(value).map_err(|e| e.to_string())?;
+    let cfg = RunConfig::parse(&text, Path::new("<resolved>")).map_err(|e| format!("{e:#}"))?;
+    Value::try_from(&cfg).map_err(|e| e.to_string())
+}
+
+/// The first path of `overlay` that alone makes `base` fail to parse.
+fn culprit(base: &Value, overlay: &Table) -> Option<String> {
+    overlay::flatten(overlay).into_iter().find_map(|(path, v)| {
+        let mut value = base.clone();
+        let bad = overlay::set(&mut value, &path, v).is_err() || check(&value).is_err();
+        bad.then_some(path)
+    })
+}
+
+/// Why a run cannot happen here: a data or weights file named by the config is missing.
+fn missing_files(config: &Value, config_dir: &Path, generated: bool) -> Option<String> {
+    let mut keys = vec!["extractor.weights", "extractor.model"];
+    if !generated {
+        keys.push("scene.path");
+    }
+    keys.into_iter().find_map(|key| {
+        let (section, name) = key.split_once('.').expect("dotted");
+        let p = config.get(section)?.get(name)?.as_str()?;
+        let path = config_dir.join(p);
+        (!p.is_empty() && !path.exists()).then(|| format!("path missing: {} (`{key}`)", path.display()))
+    })
+}
+
+/// The points of a sweep: its explicit points, or the product or zip of its `vary` lists.
+fn sweep_points(sweep: &SweepSpec) -> anyhow::Result<Vec<Point>> {
+    if !sweep.points.is_empty() {
+        return Ok(sweep
+            .points
+            .iter()
+            .map(|p| Point { label: p.label.clone(), set: p.set.clone(), x: None })
+            .collect());
+    }
+    let lists: Vec<(String, Vec<Value>)> = sweep
+        .vary
+        .iter()
+        .map(|(path, v)| match v {
+            Value::Array(items) if !items.is_empty() => Ok((path.clone(), items.clone())),
+            _ => Err(anyhow!("`vary.\"{path}\"` must be a non-empty list of values")),
+        })
+        .collect::<anyhow::Result<_>>()?;
+    let combos: Vec<Vec<usize>> = match sweep.mode {
+        SweepMode::Zip => {
+            let n = lists[0].1.len();
+            if let Some((p, l)) = lists.iter().find(|(_, l)| l.len() != n) {
+                bail!("zipped lists must have one length: `{}` has {n} values, `{p}` {}", lists[0].0, l.len());
+            }
+            (0..n).map(|i| vec![i; lists.len()]).collect()
+        }
+        SweepMode::Product => lists.iter().fold(vec![Vec::new()], |acc, (_, l)| {
+            acc.into_iter().flat_map(|c| (0..l.len()).map(move |i| [c.clone(), vec![i]].concat())).collect()
+        }),
+    };
+    if let Some(labels) = &sweep.labels {
+        if labels.len() != combos.len() {
+            bail!("`labels` has {} names for {} points", labels.len(), combos.len());
+        }
+    }
+    Ok(combos
+        .iter()
+        .enumerate()
+        .map(|(n, combo)| {
+            let mut set = Table::new();
+            let mut parts = Vec::new();
+            for ((path, list), &i) in lists.iter().zip(combo) {
+                set.insert(path.clone(), list[i].clone());
+                parts.push(if lists.len() == 1 {
+                    short(&list[i])
+                } else {
+                    format!("{}={}", leaf(path), short(&list[i]))
+                });
+            }
+            let x = (lists.len() == 1).then(|| number(&lists[0].1[combo[0]])).flatten();
+            let label = sweep.labels.as_ref().map_or_else(|| parts.join(", "), |l| l[n].clone());
+            Point { label, set, x }
+        })
+        .collect())
+}
+
+fn leaf(path: &str) -> &str {
+    path.rsplit('.').next().unwrap_or(path)
+}
+
+/// A short label for a value: scalars as written, anything else by its size.
+fn short(v: &Value) -> String {
+    match v {
+        Value::String(s) => s.clone(),
+        Value::Integer(_) | Value::Float(_) | Value::Boolean(_) => v.to_string(),
+        Value::Array(a) => format!("[{} items]", a.len()),
+        _ => "{table}".into(),
+    }
+}
+
+fn number(v: &Value) -> Option<f64> {
+    match v {
+        Value::Integer(i) => Some(*i as f64),
+        Value::Float(f) => Some(*f),
+        _ => None,
+    }
+}
+
+/// A label as a file-name part.
+fn slug(label: &str) -> String {
+    let s: String =
+        label.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '.' { c } else { '_' }).collect();
+    s.chars().take(48).collect()
+}
+
+/// Hash of what decides a run's result: the config (without its generated scene's machine
+/// path), the generated scene's spec and the curve sampling.
+fn run_hash(config: &Value, generate: Option<&Generate>, curve_points: usize) -> String {
+    let mut c = config.clone();
+    if generate.is_some() {
+        if let Some(scene) = c.get_mut("scene").and_then(Value::as_table_mut) {
+            scene.insert("path".into(), Value::String("<generated>".into()));
+        }
+    }
+    let mut text = toml::to_string(&c).unwrap_or_default();
+    if let Some(g) = generate {
+        text.push_str("\n# generate\n");
+        text.push_str(&toml::to_string(&g.spec).unwrap_or_default());
+    }
+    text.push_str(&format!("\n# curve_points = {curve_points}\n"));
+    hash_text(&text)
+}
+
+/// Hex SHA-256 of a text.
+pub fn hash_text(text: &str) -> String {
+    Sha256::digest(text.as_bytes()).iter().map(|b| format!("{b:02x}")).collect()
+}
+
+fn parse_generate(spec: &Table) -> anyhow::Result<Generate> {
+    let mut rest = spec.clone();
+    let layout = match rest.remove("layout") {
+        Some(Value::String(s)) => s,
+        _ => bail!("needs `layout` = one of {}", Format::ALL.map(Format::name).join(", ")),
+    };
+    let Some(format) = Format::ALL.into_iter().find(|f| f.name() == layout) else {
+        bail!("unknown layout `{layout}`; layouts: {}", Format::ALL.map(Format::name).join(", "));
+    };
+    let synthetic: SyntheticConfig = Value::Table(rest).try_into().context("synthetic scene keys")?;
+    synthetic.check().map_err(|e| anyhow!(e))?;
+    Ok(Generate { layout: format, synthetic, spec: spec.clone() })
+}
+
+/// The deterministic slice `index` of `count` (every `count`-th run of the sorted list).
+pub fn shard(runs: Vec<PlannedRun>, index: usize, count: usize) -> Vec<PlannedRun> {
+    runs.into_iter().enumerate().filter(|(i, _)| i % count == index).map(|(_, r)| r).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use sos_plugins as _;
+
+    /// A benchmark file and a base config in a fresh folder.
+    fn bench(body: &str) -> (PathBuf, anyhow::Result<BenchFile>) {
+        let dir = std::env::temp_dir().join(format!(
+            "sos-matrix-{}-{}",
+            std::process::id(),
+            hash_text(body).get(..8).unwrap()
+        ));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("base.toml"), "[scene]\nkind = \"synthetic\"\n[field]\nkind = \"voxel-grid\"\n")
+            .unwrap();
+        let path = dir.join("bench.toml");
+        std::fs::write(&path, body).unwrap();
+        (dir, BenchFile::load(&path))
+    }
+
+    const HEAD: &str = "[scenes.a]\nconfig = \"base.toml\"\n[scenes.b]\nconfig = \"base.toml\"\n[methods.default]\n[methods.short]\nset = { \"train.steps\" = 10 }\n";
+
+    #[test]
+    fn scenes_methods_seeds_and_sweeps_multiply() {
+        let body = format!(
+            "{HEAD}[bench]\nseeds = [0, 1]\n[[sweep]]\nname = \"s\"\nscenes = [\"a\"]\nvary = {{ \"segment.steps\" = [5, 6], \"segment.lr\" = [0.1, 0.2] }}\n"
+        );
+        let (dir, file) = bench(&body);
+        let m = plan(&file.unwrap(), None, &dir).unwrap();
+        // 2 scenes x 2 methods x 2 seeds + 4 product points x 2 seeds on one scene.
+        assert_eq!(m.runs.len(), 8 + 8);
+        let swept: Vec<_> = m.runs.iter().filter(|r| r.sweep.is_some()).collect();
+        assert!(swept.iter().all(|r| r.scene == "a" && r.method == "default"));
+        let steps = |r: &PlannedRun| r.config.get("segment").unwrap().get("steps").unwrap().as_integer().unwrap();
+        assert!(swept.iter().any(|r| steps(r) == 6));
+        // Runs with one config share a hash; different configs do not.
+        let a0 = m.runs.iter().find(|r| r.id == "a__default__s0").unwrap();
+        let b0 = m.runs.iter().find(|r| r.id == "b__default__s0").unwrap();
+        let a1 = m.runs.iter().find(|r| r.id == "a__default__s1").unwrap();
+        assert_eq!(a0.hash, b0.hash);
+        assert_ne!(a0.hash, a1.hash);
+    }
+
+    #[test]
+    fn zipped_sweeps_pair_values_and_label_them() {
+        let body = format!(
+            "{HEAD}[[sweep]]\nname = \"z\"\nmode = \"zip\"\nscenes = [\"a\"]\nvary = {{ \"segment.steps\" = [5, 6], \"segment.lr\" = [0.1, 0.2] }}\n"
+        );
+        let (dir, file) = bench(&body);
+        let m = plan(&file.unwrap(), None, &dir).unwrap();
+        let labels: Vec<_> = m.runs.iter().filter_map(|r| r.sweep.as_ref().map(|s| s.label.clone())).collect();
+        assert_eq!(labels.len(), 2);
+        assert!(labels.contains(&"lr=0.1, steps=5".to_string()), "{labels:?}");
+    }
+
+    #[test]
+    fn an_unknown_key_path_names_file_sweep_and_path_before_any_run() {
+        let body = format!("{HEAD}[[sweep]]\nname = \"typo\"\nvary = {{ \"train.ocupancy\" = [true, false] }}\n");
+        let (dir, file) = bench(&body);
+        let e = format!("{:#}", plan(&file.unwrap(), None, &dir).err().unwrap());
+        assert!(e.contains("bench.toml") && e.contains("sweep `typo`") && e.contains("train.ocupancy"), "{e}");
+        let body = format!("{HEAD}[[sweep]]\nname = \"t2\"\nvary = {{ \"trian.steps\" = [1] }}\n");
+        let (dir, file) = bench(&body);
+        let e = format!("{:#}", plan(&file.unwrap(), None, &dir).err().unwrap());
+        assert!(e.contains("sweep `t2`") && e.contains("trian.steps"), "{e}");
+    }
+
+    #[test]
+    fn missing_data_and_unbuilt_kinds_are_skips_with_a_reason() {
+        let body = format!(
+            "{HEAD}[methods.vit]\nset = {{ \"extractor.kind\" = \"dino-vit\", \"extractor.weights\" = \"nope.pth\" }}\n[methods.alien]\nset = {{ \"extractor.kind\" = \"alien\" }}\n"
+        );
+        let (dir, file) = bench(&body);
+        let m = plan(&file.unwrap(), None, &dir).unwrap();
+        let vit = m.runs.iter().find(|r| r.method == "vit").unwrap();
+        assert!(vit.skip.as_deref().unwrap().contains("path missing"), "{:?}", vit.skip);
+        let alien = m.runs.iter().find(|r| r.method == "alien").unwrap();
+        assert!(alien.skip.as_deref().unwrap().contains("not registered"), "{:?}", alien.skip);
+        assert!(m.runs.iter().filter(|r| r.method == "default").all(|r| r.skip.is_none()));
+    }
+
+    #[test]
+    fn shards_partition_the_matrix() {
+        let (dir, file) = bench(&format!("{HEAD}[bench]\nseeds = [0, 1, 2]\n"));
+        let m = plan(&file.unwrap(), None, &dir).unwrap();
+        let ids: Vec<String> = m.runs.iter().map(|r| r.id.clone()).collect();
+        let mut joined: Vec<String> = (0..3).flat_map(|i| shard(m.runs.clone(), i, 3)).map(|r| r.id).collect();
+        joined.sort();
+        assert_eq!(joined, ids);
+        assert!(shard(m.runs.clone(), 0, 3).len() >= 4);
+    }
+}

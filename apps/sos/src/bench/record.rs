@@ -1,0 +1,329 @@
+//! The result file of one run (`<out>/runs/<run-id>.json`): what ran (the resolved config and
+//! its hash, the commit, the machine), how it went (status, error), and what it measured
+//! (metrics, stage times, peak memory, learning curves).
+
+use std::path::Path;
+
+use anyhow::Context;
+use serde::{Deserialize, Serialize};
+
+use super::matrix::{PlannedRun, SweepCoord};
+
+/// How a run ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Status {
+    /// Finished; its metrics are valid.
+    Done,
+    /// Failed; `error` says why.
+    Failed,
+    /// Not run here; `error` says why (missing data or weights, a kind not built in).
+    Skipped,
+}
+
+/// Held-out metrics; a value that is absent was not measured or not finite.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Metrics {
+    /// PSNR of the mean squared error over held-out views, dB.
+    pub psnr: Option<f64>,
+    /// Mean SSIM over held-out views.
+    pub ssim: Option<f64>,
+    /// Mean adjusted Rand index over held-out views (NV-ARI).
+    pub nv_ari: Option<f64>,
+    /// Mean foreground IoU.
+    pub iou_fg: Option<f64>,
+    /// Mean background IoU.
+    pub iou_bg: Option<f64>,
+    /// Mean IoU over both classes.
+    pub miou: Option<f64>,
+}
+
+impl Metrics {
+    /// The metrics by name, in report order.
+    pub fn named(&self) -> [(&'static str, Option<f64>); 6] {
+        [
+            ("mIoU", self.miou),
+            ("NV-ARI", self.nv_ari),
+            ("IoU FG", self.iou_fg),
+            ("IoU BG", self.iou_bg),
+            ("PSNR", self.psnr),
+            ("SSIM", self.ssim),
+        ]
+    }
+}
+
+/// Wall-clock seconds of a run's phases. Learning-curve evaluations are not part of any
+/// stage: they are counted apart, in `curve_eval`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Timing {
+    /// Loading the scene and building field and teacher.
+    pub setup: f64,
+    /// Stage 1 (photometric training).
+    pub stage1: f64,
+    /// Stage 2 (segmentation head).
+    pub stage2: f64,
+    /// Masks and metrics of the held-out views (or their evaluation without stage 2).
+    pub masks: f64,
+    /// Learning-curve evaluations.
+    pub curve_eval: f64,
+    /// The run's time to its result: everything but the curve evaluations.
+    pub total: f64,
+}
+
+impl Timing {
+    /// The phases the report shows, by name.
+    pub fn named(&self) -> [(&'static str, f64); 4] {
+        [("stage1", self.stage1), ("stage2", self.stage2), ("masks", self.masks), ("total", self.total)]
+    }
+}
+
+/// One stage-1 point of the learning curve.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Stage1Point {
+    /// Steps done.
+    pub step: usize,
+    /// Stage-1 training seconds so far (evaluations excluded).
+    pub seconds: f64,
+    /// Held-out PSNR, dB.
+    pub psnr: Option<f64>,
+}
+
+/// One stage-2 point of the learning curve.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Stage2Point {
+    /// Steps done.
+    pub step: usize,
+    /// Stage-2 training seconds so far (evaluations excluded).
+    pub seconds: f64,
+    /// Held-out mIoU.
+    pub miou: Option<f64>,
+    /// Held-out NV-ARI.
+    pub nv_ari: Option<f64>,
+}
+
+/// Learning curves of both stages.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Curves {
+    /// Held-out PSNR during stage 1.
+    pub stage1: Vec<Stage1Point>,
+    /// Held-out mIoU and NV-ARI during stage 2.
+    pub stage2: Vec<Stage2Point>,
+}
+
+/// What the run process measured (written by `sos bench-exec`, read by the runner).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Outcome {
+    /// Held-out metrics.
+    pub metrics: Metrics,
+    /// Phase times.
+    pub timing: Timing,
+    /// Peak resident memory of the run's process, MiB.
+    pub peak_rss_mib: Option<f64>,
+    /// Learning curves.
+    pub curves: Curves,
+    /// Notes (e.g. a metric that was not finite).
+    #[serde(default)]
+    pub notes: Vec<String>,
+}
+
+/// The machine a run ran on.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Machine {
+    /// CPU model.
+    pub cpu: String,
+    /// Logical cores available to the process.
+    pub cores: usize,
+    /// Physical memory, GiB.
+    pub memory_gib: f64,
+    /// Host name.
+    pub host: String,
+}
+
+impl Machine {
+    /// This machine (Linux `/proc`; fields stay empty elsewhere).
+    pub fn here() -> Machine {
+        let cpuinfo = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+        let cpu = cpuinfo
+            .lines()
+            .find_map(|l| {
+                l.strip_prefix("model name").and_then(|r| r.split_once(':')).map(|(_, v)| v.trim().to_string())
+            })
+            .unwrap_or_else(|| "unknown".into());
+        let meminfo = std::fs::read_to_string("/proc/meminfo").unwrap_or_default();
+        let kib = meminfo
+            .lines()
+            .find_map(|l| l.strip_prefix("MemTotal:"))
+            .and_then(|v| v.split_whitespace().next()?.parse::<f64>().ok())
+            .unwrap_or(0.0);
+        let host = std::fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default().trim().to_string();
+        Machine {
+            cpu,
+            cores: std::thread::available_parallelism().map_or(1, usize::from),
+            memory_gib: (kib / (1024.0 * 1024.0) * 10.0).round() / 10.0,
+            host,
+        }
+    }
+}
+
+/// `<out>/runs/<run-id>.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunRecord {
+    /// `<scene>__<variant>__s<seed>`.
+    pub id: String,
+    /// Scene name.
+    pub scene: String,
+    /// Method name (the varied method, for a sweep point).
+    pub method: String,
+    /// The report row: the method, or `<sweep>: <label>`.
+    pub variant: String,
+    /// The sweep point, if any.
+    pub sweep: Option<SweepCoord>,
+    /// The run's seed.
+    pub seed: u64,
+    /// Hash of the resolved config (and generated scene): equal hashes, equal results.
+    pub hash: String,
+    /// How it ended.
+    pub status: Status,
+    /// Why it failed or was skipped.
+    pub error: Option<String>,
+    /// The fully resolved run config (TOML).
+    pub config: String,
+    /// Commit of the checkout that ran it (`unknown` outside git; `+dirty` with local changes).
+    pub commit: String,
+    /// The machine.
+    pub machine: Machine,
+    /// When the run finished (UTC, `YYYY-MM-DD HH:MM`).
+    pub finished: String,
+    /// What it measured (absent unless done).
+    pub outcome: Option<Outcome>,
+}
+
+impl RunRecord {
+    /// A record of `run` with its status; `outcome` for a finished run.
+    pub fn new(
+        run: &PlannedRun,
+        status: Status,
+        error: Option<String>,
+        outcome: Option<Outcome>,
+        commit: &str,
+    ) -> RunRecord {
+        RunRecord {
+            id: run.id.clone(),
+            scene: run.scene.clone(),
+            method: run.method.clone(),
+            variant: run.variant.clone(),
+            sweep: run.sweep.clone(),
+            seed: run.seed,
+            hash: run.hash.clone(),
+            status,
+            error,
+            config: toml::to_string(&run.config).unwrap_or_default(),
+            commit: commit.to_string(),
+            machine: Machine::here(),
+            finished: utc_now(),
+            outcome,
+        }
+    }
+
+    /// Reads a record; errors name the file.
+    pub fn load(path: &Path) -> anyhow::Result<RunRecord> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        serde_json::from_str(&text).with_context(|| format!("{} is not a run record", path.display()))
+    }
+
+    /// Writes the record atomically (a killed process leaves the old file or the new one).
+    pub fn save(&self, path: &Path) -> anyhow::Result<()> {
+        crate::commands::write_json(path, self)
+    }
+}
+
+/// Every record in `<dir>/runs/`, sorted by id.
+pub fn load_all(dir: &Path) -> anyhow::Result<Vec<RunRecord>> {
+    let runs = dir.join("runs");
+    let entries = std::fs::read_dir(&runs)
+        .with_context(|| format!("reading {}: not a benchmark result folder", runs.display()))?;
+    let mut out = Vec::new();
+    for e in entries {
+        let path = e.with_context(|| format!("reading {}", runs.display()))?.path();
+        if path.extension().is_some_and(|x| x == "json") {
+            out.push(RunRecord::load(&path)?);
+        }
+    }
+    out.sort_by(|a, b| a.id.cmp(&b.id));
+    Ok(out)
+}
+
+/// The current commit of the checkout holding `dir`, with `+dirty` for local changes.
+pub fn commit_of(dir: &Path) -> String {
+    let git = |args: &[&str]| {
+        std::process::Command::new("git")
+            .arg("-C")
+            .arg(if dir.as_os_str().is_empty() { Path::new(".") } else { dir })
+            .args(args)
+            .output()
+            .ok()
+            .filter(|o| o.status.success())
+            .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+    };
+    match git(&["rev-parse", "--short=12", "HEAD"]) {
+        Some(head) => {
+            let dirty = git(&["status", "--porcelain", "--untracked-files=no"]).is_some_and(|s| !s.is_empty());
+            if dirty {
+                format!("{head}+dirty")
+            } else {
+                head
+            }
+        }
+        None => "unknown".into(),
+    }
+}
+
+/// The peak resident memory of this process so far, MiB (Linux `VmHWM`).
+pub fn peak_rss_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let kib: f64 = status.lines().find_map(|l| l.strip_prefix("VmHWM:"))?.split_whitespace().next()?.parse().ok()?;
+    Some(kib / 1024.0)
+}
+
+/// The current UTC time as `YYYY-MM-DD HH:MM`.
+pub fn utc_now() -> String {
+    let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
+    let (days, rem) = (secs / 86_400, secs % 86_400);
+    let (y, m, d) = civil_from_days(days as i64);
+    format!("{y:04}-{m:02}-{d:02} {:02}:{:02}", rem / 3600, rem % 3600 / 60)
+}
+
+/// Gregorian date of a day count since 1970-01-01 (Howard Hinnant's `civil_from_days`).
+fn civil_from_days(z: i64) -> (i64, u32, u32) {
+    let z = z + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z.rem_euclid(146_097);
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = (doy - (153 * mp + 2) / 5 + 1) as u32;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
+    (yoe + era * 400 + i64::from(m <= 2), m, d)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn dates_follow_the_gregorian_calendar() {
+        assert_eq!(civil_from_days(0), (1970, 1, 1));
+        assert_eq!(civil_from_days(11_016), (2000, 2, 29));
+        assert_eq!(civil_from_days(20_788), (2026, 12, 1));
+    }
+
+    #[test]
+    fn this_machine_has_cores_and_memory() {
+        let m = Machine::here();
+        assert!(m.cores >= 1);
+        if cfg!(target_os = "linux") {
+            assert!(m.memory_gib > 0.0 && m.cpu != "unknown", "{m:?}");
+            assert!(peak_rss_mib().is_some_and(|p| p > 0.0));
+        }
+    }
+}

@@ -1,0 +1,479 @@
+//! The benchmark report: `report.json` and `report.md` (a table per scene, one row per method
+//! or sweep point: metrics as mean ± std over seeds, stage times, peak memory, speed-up
+//! against the baseline) and the plots under `plots/`.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use serde::{Deserialize, Serialize};
+
+use super::plot::{write_chart, Chart, Series};
+use super::record::{RunRecord, Status};
+use super::runner::BenchMeta;
+
+/// Mean and standard deviation over seeds.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Stat {
+    /// Mean.
+    pub mean: f64,
+    /// Sample standard deviation (0 for one seed).
+    pub std: f64,
+    /// Values averaged.
+    pub n: usize,
+}
+
+impl Stat {
+    /// The statistic of the finite values, if any.
+    pub fn of(values: impl IntoIterator<Item = f64>) -> Option<Stat> {
+        let v: Vec<f64> = values.into_iter().filter(|x| x.is_finite()).collect();
+        if v.is_empty() {
+            return None;
+        }
+        let n = v.len();
+        let mean = v.iter().sum::<f64>() / n as f64;
+        let var = if n > 1 { v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1) as f64 } else { 0.0 };
+        Some(Stat { mean, std: var.sqrt(), n })
+    }
+}
+
+/// One row of a scene's table.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Row {
+    /// The method, or `<sweep>: <label>`.
+    pub variant: String,
+    /// The method (the varied one, for a sweep point).
+    pub method: String,
+    /// The sweep and point, if any.
+    pub sweep: Option<(String, String)>,
+    /// Seeds with a finished run.
+    pub seeds: Vec<u64>,
+    /// Metrics by name (`mIoU`, `NV-ARI`, `IoU FG`, `IoU BG`, `PSNR`, `SSIM`).
+    pub metrics: BTreeMap<String, Stat>,
+    /// Phase seconds by name (`stage1`, `stage2`, `masks`, `total`).
+    pub seconds: BTreeMap<String, Stat>,
+    /// Largest peak resident memory over seeds, MiB.
+    pub peak_rss_mib: Option<f64>,
+    /// The baseline row's total time over this row's (above 1: faster than the baseline).
+    pub speedup: Option<f64>,
+    /// Runs that failed or were skipped, with why.
+    pub problems: Vec<String>,
+}
+
+/// Every row of one scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SceneTable {
+    /// Scene name.
+    pub scene: String,
+    /// Rows: methods first, then sweep points in order.
+    pub rows: Vec<Row>,
+}
+
+/// `report.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Report {
+    /// What the folder holds.
+    pub meta: BenchMeta,
+    /// Commits the runs were made at.
+    pub commits: Vec<String>,
+    /// Machines (CPU, cores, memory) the runs ran on.
+    pub machines: Vec<String>,
+    /// When the last run finished (UTC).
+    pub finished: String,
+    /// Runs finished, failed and skipped.
+    pub counts: BTreeMap<String, usize>,
+    /// One table per scene.
+    pub scenes: Vec<SceneTable>,
+}
+
+/// Builds the report of `records`.
+pub fn build(records: &[RunRecord], meta: &BenchMeta) -> Report {
+    let mut by_scene: BTreeMap<&str, Vec<&RunRecord>> = BTreeMap::new();
+    for r in records {
+        by_scene.entry(&r.scene).or_default().push(r);
+    }
+    let scenes = by_scene.into_iter().map(|(scene, runs)| scene_table(scene, &runs, &meta.baseline)).collect();
+    let mut counts = BTreeMap::new();
+    for r in records {
+        let key = match r.status {
+            Status::Done => "done",
+            Status::Failed => "failed",
+            Status::Skipped => "skipped",
+        };
+        *counts.entry(key.to_string()).or_insert(0) += 1;
+    }
+    let distinct = |f: &dyn Fn(&RunRecord) -> String| {
+        let mut v: Vec<String> = records.iter().filter(|r| r.status != Status::Skipped).map(f).collect();
+        v.sort();
+        v.dedup();
+        v
+    };
+    Report {
+        meta: meta.clone(),
+        commits: distinct(&|r| r.commit.clone()),
+        machines: distinct(&|r| format!("{} ({} cores, {} GiB)", r.machine.cpu, r.machine.cores, r.machine.memory_gib)),
+        finished: records
+            .iter()
+            .filter(|r| r.status == Status::Done)
+            .map(|r| r.finished.clone())
+            .max()
+            .unwrap_or_default(),
+        counts,
+        scenes,
+    }
+}
+
+fn scene_table(scene: &str, runs: &[&RunRecord], baseline: &str) -> SceneTable {
+    // Methods first (baseline leading), then sweep points in sweep order.
+    let mut variants: Vec<(&str, Option<(&str, usize)>)> = Vec::new();
+    for r in runs {
+        let key = (r.variant.as_str(), r.sweep.as_ref().map(|s| (s.name.as_str(), s.index)));
+        if !variants.contains(&key) {
+            variants.push(key);
+        }
+    }
+    variants
+        .sort_by_key(|(v, s)| (s.is_some(), *v != baseline, s.map(|s| s.0.to_string()), s.map(|s| s.1), v.to_string()));
+    let mut rows: Vec<Row> = variants
+        .iter()
+        .map(|(variant, _)| {
+            let mine: Vec<&&RunRecord> = runs.iter().filter(|r| r.variant == *variant).collect();
+            row(variant, &mine)
+        })
+        .collect();
+    let base_total = rows.iter().find(|r| r.variant == baseline).and_then(|r| r.seconds.get("total")).map(|s| s.mean);
+    for r in &mut rows {
+        r.speedup = match (base_total, r.seconds.get("total")) {
+            (Some(b), Some(t)) if t.mean > 0.0 => Some(b / t.mean),
+            _ => None,
+        };
+    }
+    SceneTable { scene: scene.to_string(), rows }
+}
+
+fn row(variant: &str, runs: &[&&RunRecord]) -> Row {
+    let done: Vec<&RunRecord> = runs.iter().filter(|r| r.status == Status::Done).map(|r| **r).collect();
+    let outcomes: Vec<_> = done.iter().filter_map(|r| r.outcome.as_ref()).collect();
+    let mut metrics = BTreeMap::new();
+    for (i, (name, _)) in super::record::Metrics::default().named().iter().enumerate() {
+        if let Some(s) = Stat::of(outcomes.iter().filter_map(|o| o.metrics.named()[i].1)) {
+            metrics.insert(name.to_string(), s);
+        }
+    }
+    let mut seconds = BTreeMap::new();
+    for (i, (name, _)) in super::record::Timing::default().named().iter().enumerate() {
+        if let Some(s) = Stat::of(outcomes.iter().map(|o| o.timing.named()[i].1)) {
+            seconds.insert(name.to_string(), s);
+        }
+    }
+    let problems = runs
+        .iter()
+        .filter(|r| r.status != Status::Done)
+        .map(|r| {
+            let why = r.error.as_deref().unwrap_or("").lines().next().unwrap_or("").to_string();
+            format!("seed {}: {} ({why})", r.seed, if r.status == Status::Failed { "failed" } else { "skipped" })
+        })
+        .collect();
+    let first = runs[0];
+    Row {
+        variant: variant.to_string(),
+        method: first.method.clone(),
+        sweep: first.sweep.as_ref().map(|s| (s.name.clone(), s.label.clone())),
+        seeds: done.iter().map(|r| r.seed).collect(),
+        metrics,
+        seconds,
+        peak_rss_mib: outcomes
+            .iter()
+            .filter_map(|o| o.peak_rss_mib)
+            .fold(None, |m: Option<f64>, v| Some(m.map_or(v, |m| m.max(v)))),
+        speedup: None,
+        problems,
+    }
+}
+
+fn fmt_stat(s: Option<&Stat>, digits: usize) -> String {
+    match s {
+        None => "-".into(),
+        Some(s) if s.n > 1 => format!("{:.digits$} ± {:.digits$}", s.mean, s.std),
+        Some(s) => format!("{:.digits$}", s.mean),
+    }
+}
+
+impl Report {
+    /// The Markdown report.
+    pub fn to_markdown(&self) -> String {
+        let mut md = format!(
+            "# Benchmark `{}`, profile `{}`\n\nWritten by `sos bench`. Last run finished {} UTC; commit {}; {}.\n",
+            self.meta.file,
+            self.meta.profile,
+            self.finished,
+            self.commits.join(", "),
+            self.machines.join("; ")
+        );
+        md.push_str(&format!(
+            "Runs: {}. Metrics are means over held-out views, then mean ± std over seeds; times in seconds \
+             (`total` is the run's time to its result, learning-curve evaluations excluded); speed-up is \
+             against the `{}` row of the same scene.\n",
+            self.counts.iter().map(|(k, v)| format!("{v} {k}")).collect::<Vec<_>>().join(", "),
+            self.meta.baseline
+        ));
+        for scene in &self.scenes {
+            md.push_str(&format!("\n## {}\n\n", scene.scene));
+            md.push_str(&table(&scene.rows, true));
+        }
+        md.push_str("\n## Plots\n\nIn `plots/`: `miou_vs_time` and `psnr_vs_stage1_time` over every scene, per scene `<scene>_miou_vs_time` with the Pareto front, per sweep `sweep_<name>` (mIoU) and `sweep_<name>_time`.\n");
+        md
+    }
+
+    /// The compact table of every scene's rows (for the README).
+    pub fn summary_markdown(&self) -> String {
+        let mut md = String::from("| scene | method | mIoU | NV-ARI | PSNR dB | stage 1 s | stage 2 s | total s | peak MiB |\n|---|---|---|---|---|---|---|---|---|\n");
+        for scene in &self.scenes {
+            for r in &scene.rows {
+                let m = |k: &str, d| fmt_stat(r.metrics.get(k), d);
+                let s = |k: &str| fmt_stat(r.seconds.get(k), 1);
+                let status = if r.seeds.is_empty() { format!(" ({})", r.problems.join("; ")) } else { String::new() };
+                md.push_str(&format!(
+                    "| {} | {}{status} | {} | {} | {} | {} | {} | {} | {} |\n",
+                    scene.scene,
+                    r.variant,
+                    m("mIoU", 3),
+                    m("NV-ARI", 3),
+                    m("PSNR", 2),
+                    s("stage1"),
+                    s("stage2"),
+                    s("total"),
+                    r.peak_rss_mib.map_or("-".into(), |p| format!("{p:.0}"))
+                ));
+            }
+        }
+        md
+    }
+}
+
+/// One scene's rows as a Markdown table.
+fn table(rows: &[Row], with_problems: bool) -> String {
+    let mut md = String::from(
+        "| method | seeds | mIoU | NV-ARI | IoU FG | IoU BG | PSNR dB | SSIM | stage 1 s | stage 2 s | masks s | total s | speed-up | peak MiB |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+    );
+    let mut notes = Vec::new();
+    for r in rows {
+        let m = |k: &str, d| fmt_stat(r.metrics.get(k), d);
+        let s = |k: &str| fmt_stat(r.seconds.get(k), 1);
+        md.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            r.variant,
+            r.seeds.len(),
+            m("mIoU", 3),
+            m("NV-ARI", 3),
+            m("IoU FG", 3),
+            m("IoU BG", 3),
+            m("PSNR", 2),
+            m("SSIM", 3),
+            s("stage1"),
+            s("stage2"),
+            s("masks"),
+            s("total"),
+            r.speedup.map_or("-".into(), |x| format!("{x:.2}×")),
+            r.peak_rss_mib.map_or("-".into(), |p| format!("{p:.0}"))
+        ));
+        if with_problems {
+            notes.extend(r.problems.iter().map(|p| format!("- `{}`, {p}\n", r.variant)));
+        }
+    }
+    if !notes.is_empty() {
+        md.push('\n');
+        md.extend(notes);
+    }
+    md
+}
+
+/// Writes `report.json`, `report.md` and the plots of `records` into `out`.
+pub fn write(out: &Path, records: &[RunRecord], meta: &BenchMeta) -> anyhow::Result<Report> {
+    let report = build(records, meta);
+    crate::commands::write_json(&out.join("report.json"), &report)?;
+    let md = out.join("report.md");
+    write_atomic(&md, &report.to_markdown())?;
+    write_plots(out, &report, records)?;
+    Ok(report)
+}
+
+fn write_atomic(path: &Path, text: &str) -> anyhow::Result<()> {
+    let tmp = path.with_extension("md.tmp");
+    std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+}
+
+/// Mean (run time, metric) of a row.
+fn point(r: &Row, time: &str, metric: &str) -> Option<(f64, f64)> {
+    Some((r.seconds.get(time)?.mean, r.metrics.get(metric)?.mean))
+}
+
+fn write_plots(out: &Path, report: &Report, records: &[RunRecord]) -> anyhow::Result<()> {
+    let dir = out.join("plots");
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    // Every scene at once: one series per method or sweep, a point per scene.
+    for (stem, time, metric, x_label, y_label, title) in [
+        ("miou_vs_time", "total", "mIoU", "run time (s)", "mIoU", "mIoU against run time, every scene"),
+        (
+            "psnr_vs_stage1_time",
+            "stage1",
+            "PSNR",
+            "stage-1 time (s)",
+            "held-out PSNR (dB)",
+            "PSNR against stage-1 time, every scene",
+        ),
+    ] {
+        let mut groups: BTreeMap<String, Vec<(f64, f64)>> = BTreeMap::new();
+        for scene in &report.scenes {
+            for r in &scene.rows {
+                let group = r.sweep.as_ref().map_or_else(|| r.method.clone(), |(s, _)| format!("sweep {s}"));
+                groups.entry(group).or_default().extend(point(r, time, metric));
+            }
+        }
+        let chart = Chart {
+            title: title.into(),
+            x_label: x_label.into(),
+            y_label: y_label.into(),
+            x_categories: None,
+            series: groups.into_iter().map(|(label, points)| Series { label, points }).collect(),
+            lines: false,
+            pareto: false,
+        };
+        write_chart(&chart, &dir.join(stem))?;
+    }
+    // Per scene: a point per row, the Pareto front of time against mIoU marked.
+    for scene in &report.scenes {
+        let series: Vec<Series> = scene
+            .rows
+            .iter()
+            .filter_map(|r| point(r, "total", "mIoU").map(|p| Series { label: r.variant.clone(), points: vec![p] }))
+            .collect();
+        if series.is_empty() {
+            continue;
+        }
+        let chart = Chart {
+            title: format!("{}: mIoU against run time", scene.scene),
+            x_label: "run time (s)".into(),
+            y_label: "mIoU".into(),
+            x_categories: None,
+            series,
+            lines: false,
+            pareto: true,
+        };
+        write_chart(&chart, &dir.join(format!("{}_miou_vs_time", scene.scene)))?;
+    }
+    // Per sweep: the metric and the time against the swept value, a series per scene.
+    let mut sweeps: BTreeMap<&str, Vec<&RunRecord>> = BTreeMap::new();
+    for r in records.iter().filter(|r| r.status == Status::Done) {
+        if let Some(s) = &r.sweep {
+            sweeps.entry(&s.name).or_default().push(r);
+        }
+    }
+    for (name, runs) in sweeps {
+        let numeric = runs.iter().all(|r| r.sweep.as_ref().and_then(|s| s.x).is_some());
+        let mut labels: Vec<(usize, String)> =
+            runs.iter().filter_map(|r| r.sweep.as_ref().map(|s| (s.index, s.label.clone()))).collect();
+        labels.sort();
+        labels.dedup();
+        for (suffix, y_label, get) in [
+            (
+                "",
+                "mIoU",
+                (|r: &RunRecord| r.outcome.as_ref().and_then(|o| o.metrics.miou)) as fn(&RunRecord) -> Option<f64>,
+            ),
+            ("_time", "run time (s)", |r: &RunRecord| r.outcome.as_ref().map(|o| o.timing.total)),
+        ] {
+            let mut by_scene: BTreeMap<&str, BTreeMap<usize, Vec<f64>>> = BTreeMap::new();
+            for r in &runs {
+                let s = r.sweep.as_ref().expect("sweep runs");
+                if let Some(y) = get(r) {
+                    by_scene.entry(&r.scene).or_default().entry(s.index).or_default().push(y);
+                }
+            }
+            let x_of = |index: usize| -> f64 {
+                if numeric {
+                    runs.iter()
+                        .find_map(|r| r.sweep.as_ref().filter(|s| s.index == index).and_then(|s| s.x))
+                        .unwrap_or(index as f64)
+                } else {
+                    labels.iter().position(|(i, _)| *i == index).unwrap_or(0) as f64
+                }
+            };
+            let series = by_scene
+                .into_iter()
+                .map(|(scene, points)| Series {
+                    label: scene.to_string(),
+                    points: points
+                        .into_iter()
+                        .map(|(i, ys)| (x_of(i), ys.iter().sum::<f64>() / ys.len() as f64))
+                        .collect(),
+                })
+                .collect();
+            let chart = Chart {
+                title: format!("sweep {name}: {y_label}"),
+                x_label: if numeric {
+                    labels.first().map_or(String::new(), |_| "swept value".into())
+                } else {
+                    String::new()
+                },
+                y_label: y_label.into(),
+                x_categories: (!numeric).then(|| labels.iter().map(|(_, l)| l.clone()).collect()),
+                series,
+                lines: true,
+                pareto: false,
+            };
+            write_chart(&chart, &dir.join(format!("sweep_{name}{suffix}")))?;
+        }
+    }
+    Ok(())
+}
+
+/// Replaces the block between `<!-- sos-bench:<profile>:begin -->` and its `end` marker in
+/// `readme` with the report's summary table and its mIoU-against-time plot.
+pub fn update_readme(readme: &Path, report: &Report, out: &Path) -> anyhow::Result<()> {
+    let text = std::fs::read_to_string(readme).with_context(|| format!("reading {}", readme.display()))?;
+    let begin = format!("<!-- sos-bench:{}:begin -->", report.meta.profile);
+    let end = format!("<!-- sos-bench:{}:end -->", report.meta.profile);
+    let (Some(b), Some(e)) = (text.find(&begin), text.find(&end)) else {
+        anyhow::bail!(
+            "{} has no `{begin}` ... `{end}` block to fill; add the two lines where the table goes",
+            readme.display()
+        );
+    };
+    let base = readme.parent().map(Path::to_path_buf).unwrap_or_default();
+    let plot = relative(&out.join("plots").join("miou_vs_time.svg"), &base);
+    let block = format!(
+        "{begin}\n_Written by `sos bench --profile {}`; last run {} UTC, commit {}, {}._\n\n{}\n![mIoU against run time]({})\n",
+        report.meta.profile,
+        report.finished,
+        report.commits.join(", "),
+        report.machines.join("; "),
+        report.summary_markdown(),
+        plot.display()
+    );
+    let updated = format!("{}{block}{}", &text[..b], &text[e..]);
+    write_atomic(readme, &updated)
+}
+
+/// `path` relative to `base` when it lies under it.
+fn relative(path: &Path, base: &Path) -> PathBuf {
+    let abs = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+    let (p, b) = (abs(path), abs(base));
+    p.strip_prefix(&b).map(Path::to_path_buf).unwrap_or(p)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stats_skip_non_finite_values() {
+        let s = Stat::of([1.0, 3.0, f64::NAN]).unwrap();
+        assert_eq!((s.mean, s.n), (2.0, 2));
+        assert!((s.std - 2f64.sqrt()).abs() < 1e-12);
+        assert!(Stat::of([f64::INFINITY]).is_none());
+        assert_eq!(Stat::of([5.0]).unwrap().std, 0.0);
+    }
+}

@@ -1,0 +1,277 @@
+//! Running a matrix: each run in its own process, results written as they finish, finished
+//! runs never repeated, the report regenerated after every run.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::Instant;
+
+use anyhow::{bail, Context};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::{Deserialize, Serialize};
+use toml::Value;
+
+use super::matrix::{Generate, PlannedRun};
+use super::record::{Outcome, RunRecord, Status};
+use super::report;
+
+/// What describes a result folder (`<out>/bench.json`), so that `merge` and the report know
+/// the baseline and the file the runs came from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BenchMeta {
+    /// The benchmark file, as given.
+    pub file: String,
+    /// The profile.
+    pub profile: String,
+    /// The baseline method of the speed-up column.
+    pub baseline: String,
+    /// `i/n` when this folder holds one shard.
+    pub shard: Option<String>,
+    /// Runs in the whole matrix (all shards).
+    pub matrix_runs: usize,
+}
+
+impl BenchMeta {
+    /// Reads `<dir>/bench.json`.
+    pub fn load(dir: &Path) -> anyhow::Result<BenchMeta> {
+        let path = dir.join("bench.json");
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("reading {}: not a benchmark result folder", path.display()))?;
+        serde_json::from_str(&text).with_context(|| format!("{} is not a benchmark description", path.display()))
+    }
+}
+
+/// How the runner counts what it did.
+#[derive(Debug, Default)]
+pub struct Tally {
+    /// Runs executed now and finished.
+    pub ran: usize,
+    /// Runs whose result was already there.
+    pub cached: usize,
+    /// Runs that could not run here.
+    pub skipped: usize,
+    /// Ids of runs that failed.
+    pub failed: Vec<String>,
+}
+
+/// Runs `runs` (a matrix or one shard of it) into `out`.
+pub fn run_all(
+    runs: &[PlannedRun],
+    out: &Path,
+    meta: &BenchMeta,
+    curve_points: usize,
+    commit: &str,
+    progress: bool,
+) -> anyhow::Result<Tally> {
+    let runs_dir = out.join("runs");
+    let work_dir = out.join("work");
+    for d in [&runs_dir, &work_dir, &out.join("logs")] {
+        std::fs::create_dir_all(d).with_context(|| format!("creating {} (is `--out` writable?)", d.display()))?;
+    }
+    crate::commands::write_json(&out.join("bench.json"), meta)?;
+    remove_leftovers(&runs_dir, &work_dir)?;
+    let mut records: Vec<RunRecord> = Vec::new();
+    let existing: Vec<RunRecord> = std::fs::read_dir(&runs_dir)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "json"))
+        .filter_map(|p| RunRecord::load(&p).ok())
+        .collect();
+
+    let bar = if progress { ProgressBar::new(runs.len() as u64) } else { ProgressBar::hidden() };
+    bar.set_style(
+        ProgressStyle::with_template("bench {bar:30} {pos}/{len} {msg} [{elapsed_precise}<{eta_precise}]")
+            .expect("valid template"),
+    );
+    let mut tally = Tally::default();
+    for (n, run) in runs.iter().enumerate() {
+        bar.set_message(run.id.clone());
+        let path = runs_dir.join(format!("{}.json", run.id));
+        let started = Instant::now();
+        let done = |r: &RunRecord| r.status == Status::Done && r.hash == run.hash;
+        let mut cached = false;
+        let (record, how) = if let Some(reason) = &run.skip {
+            tally.skipped += 1;
+            (RunRecord::new(run, Status::Skipped, Some(reason.clone()), None, commit), format!("skipped: {reason}"))
+        } else if let Some(r) = existing.iter().chain(&records).find(|r| r.id == run.id && done(r)) {
+            tally.cached += 1;
+            cached = true;
+            (r.clone(), "cached".into())
+        } else if let Some(r) = existing.iter().chain(&records).find(|r| done(r)) {
+            // Another run of the matrix has this very config (a sweep point at the default).
+            tally.cached += 1;
+            let mut copy = r.clone();
+            let note = format!("same config as `{}`: its result is reused", r.id);
+            (copy.id, copy.scene, copy.method, copy.variant, copy.sweep) =
+                (run.id.clone(), run.scene.clone(), run.method.clone(), run.variant.clone(), run.sweep.clone());
+            if let Some(o) = copy.outcome.as_mut() {
+                o.notes.push(note.clone());
+            }
+            (copy, note)
+        } else {
+            match execute(run, out, curve_points) {
+                Ok(outcome) => {
+                    tally.ran += 1;
+                    let summary = summary_line(&outcome, started.elapsed().as_secs_f64());
+                    (RunRecord::new(run, Status::Done, None, Some(outcome), commit), summary)
+                }
+                Err(e) => {
+                    tally.failed.push(run.id.clone());
+                    let message = format!("{e:#}");
+                    let first = message.lines().next().unwrap_or("").to_string();
+                    (RunRecord::new(run, Status::Failed, Some(message), None, commit), format!("FAILED: {first}"))
+                }
+            }
+        };
+        // Unchanged records are not rewritten, so a rerun of a finished matrix writes nothing.
+        let unchanged = cached || (record.status == Status::Skipped && skipped_unchanged(&path, &record));
+        if !unchanged {
+            record.save(&path)?;
+        }
+        records.push(record);
+        let line = format!("[{}/{}] {}: {how}", n + 1, runs.len(), run.id);
+        if bar.is_hidden() {
+            eprintln!("{line}");
+        } else {
+            bar.println(line);
+        }
+        bar.inc(1);
+        if !unchanged {
+            report::write(out, &records, meta).context("writing the report")?;
+        }
+    }
+    bar.finish_and_clear();
+    report::write(out, &records, meta).context("writing the report")?;
+    Ok(tally)
+}
+
+/// Whether a skip record on disk says the same (its time aside), so it need not be rewritten.
+fn skipped_unchanged(path: &Path, record: &RunRecord) -> bool {
+    RunRecord::load(path).is_ok_and(|old| {
+        old.status == Status::Skipped
+            && old.error == record.error
+            && old.hash == record.hash
+            && old.commit == record.commit
+    })
+}
+
+/// What a finished run prints.
+fn summary_line(o: &Outcome, seconds: f64) -> String {
+    let f = |v: Option<f64>, d: usize| v.map_or_else(|| "-".into(), |v| format!("{v:.d$}"));
+    format!(
+        "done in {seconds:.0} s (run time {:.1} s): mIoU {}, NV-ARI {}, PSNR {} dB",
+        o.timing.total,
+        f(o.metrics.miou, 3),
+        f(o.metrics.nv_ari, 3),
+        f(o.metrics.psnr, 2)
+    )
+}
+
+/// Removes what a killed runner leaves: temporary files of unfinished writes.
+fn remove_leftovers(runs_dir: &Path, work_dir: &Path) -> anyhow::Result<()> {
+    for dir in [runs_dir, work_dir] {
+        for e in std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
+            let p = e?.path();
+            if p.to_string_lossy().ends_with(".tmp") {
+                std::fs::remove_file(&p).with_context(|| format!("removing leftover {}", p.display()))?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Runs one planned run in a child process and returns what it measured.
+fn execute(run: &PlannedRun, out: &Path, curve_points: usize) -> anyhow::Result<Outcome> {
+    if let Some(g) = &run.generate {
+        ensure_generated(g, out)?;
+    }
+    let work = out.join("work");
+    let absolute =
+        |p: &Path| if p.is_absolute() { p.to_path_buf() } else { std::env::current_dir().unwrap_or_default().join(p) };
+    let run_dir = work.join(&run.id);
+    // A run killed midway left a partial folder: start it over cleanly.
+    if run_dir.exists() {
+        std::fs::remove_dir_all(&run_dir)
+            .with_context(|| format!("removing the unfinished run {}", run_dir.display()))?;
+    }
+    let mut config = run.config.clone();
+    if let Value::Table(t) = &mut config {
+        t.insert("name".into(), Value::String(run.id.clone()));
+        t.insert("output_dir".into(), Value::String(absolute(&work).display().to_string()));
+    }
+    let config_path = work.join(format!("{}.toml", run.id));
+    std::fs::write(&config_path, toml::to_string(&config)?)
+        .with_context(|| format!("writing {}", config_path.display()))?;
+    let outcome_path = work.join(format!("{}.outcome.json", run.id));
+    let _ = std::fs::remove_file(&outcome_path);
+    let log_path = out.join("logs").join(format!("{}.log", run.id));
+    let log = std::fs::File::create(&log_path).with_context(|| format!("creating {}", log_path.display()))?;
+    let exe = std::env::current_exe().context("finding the running `sos` binary")?;
+    let status = Command::new(exe)
+        .arg("bench-exec")
+        .arg(&config_path)
+        .arg("--config-dir")
+        .arg(absolute(&run.config_dir))
+        .arg("--outcome")
+        .arg(&outcome_path)
+        .arg("--curve-points")
+        .arg(curve_points.to_string())
+        .stdin(Stdio::null())
+        .stdout(log.try_clone()?)
+        .stderr(log)
+        .status()
+        .context("starting the run's process")?;
+    if !status.success() {
+        bail!("{} (log: {})\n{}", describe(status), log_path.display(), error_lines(&log_path));
+    }
+    let text = std::fs::read_to_string(&outcome_path).with_context(|| format!("reading {}", outcome_path.display()))?;
+    let outcome: Outcome =
+        serde_json::from_str(&text).with_context(|| format!("{} is not an outcome", outcome_path.display()))?;
+    std::fs::remove_file(&outcome_path).ok();
+    Ok(outcome)
+}
+
+fn describe(status: std::process::ExitStatus) -> String {
+    match status.code() {
+        Some(c) => format!("the run exited with code {c}"),
+        None => "the run was killed by a signal".into(),
+    }
+}
+
+/// The `error:` lines of a run's log, or its last lines.
+fn error_lines(log: &Path) -> String {
+    let text = std::fs::read_to_string(log).unwrap_or_default();
+    let errors: Vec<&str> = text.lines().filter(|l| l.starts_with("error")).collect();
+    if errors.is_empty() {
+        let lines: Vec<&str> = text.lines().collect();
+        lines[lines.len().saturating_sub(8)..].join("\n")
+    } else {
+        errors.join("\n")
+    }
+}
+
+/// Writes a generated scene once: into a temporary folder renamed into place, so that
+/// concurrent shards and interrupted writes never leave a half-written layout in use.
+fn ensure_generated(g: &Generate, out: &Path) -> anyhow::Result<()> {
+    let dir = g.dir(out);
+    if dir.join(".complete").exists() {
+        return Ok(());
+    }
+    let tmp: PathBuf = dir.with_extension(format!("{}.partial", std::process::id()));
+    let _ = std::fs::remove_dir_all(&tmp);
+    let scene = sos_datasets::synthetic::generate(&g.synthetic);
+    g.layout
+        .write(&scene, &tmp)
+        .with_context(|| format!("writing the {} layout to {}", g.layout.name(), tmp.display()))?;
+    std::fs::write(tmp.join(".complete"), toml::to_string(&g.spec)?)?;
+    if dir.exists() {
+        std::fs::remove_dir_all(&dir).with_context(|| format!("replacing the incomplete {}", dir.display()))?;
+    }
+    match std::fs::rename(&tmp, &dir) {
+        Ok(()) => Ok(()),
+        // Another shard finished the same scene first.
+        Err(_) if dir.join(".complete").exists() => {
+            let _ = std::fs::remove_dir_all(&tmp);
+            Ok(())
+        }
+        Err(e) => Err(e).with_context(|| format!("moving {} into place", dir.display())),
+    }
+}

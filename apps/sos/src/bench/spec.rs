@@ -1,0 +1,362 @@
+//! The benchmark file: scenes, methods, sweeps and profiles, read from TOML.
+//!
+//! ```toml
+//! [bench]
+//! baseline = "default"      # the method every speed-up is measured against
+//! curve_points = 6          # learning-curve samples per stage
+//! seeds = [0]
+//! default_profile = "quick"
+//!
+//! [scenes.object-centric]
+//! config = "../configs/synthetic.toml"          # base run config, relative to this file
+//! set = { "train.steps" = 300 }                   # overrides by dotted path
+//!
+//! [scenes.llff-layout]
+//! config = "../configs/synthetic_llff.toml"
+//! generate = { layout = "llff", width = 100, height = 75, views = 24 }
+//!
+//! [methods.default]
+//! [methods.no-geometry]
+//! set = { loss = [{ kind = "appearance", weight = 1.0 }] }
+//!
+//! [[sweep]]
+//! name = "head-steps"
+//! vary = { "segment.steps" = [50, 100, 200] }
+//!
+//! [profiles.quick]
+//! scenes = ["object-centric", "llff-layout"]
+//! methods = ["default"]
+//! sweeps = ["head-steps"]
+//! ```
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+use serde::Deserialize;
+
+/// A parsed benchmark file.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BenchFile {
+    /// Settings of the whole benchmark.
+    #[serde(default)]
+    pub bench: BenchSettings,
+    /// Scenes by name.
+    #[serde(default)]
+    pub scenes: BTreeMap<String, SceneSpec>,
+    /// Methods (named config overlays) by name.
+    #[serde(default)]
+    pub methods: BTreeMap<String, MethodSpec>,
+    /// Sweeps over config keys.
+    #[serde(default)]
+    pub sweep: Vec<SweepSpec>,
+    /// Named subsets of the matrix.
+    #[serde(default)]
+    pub profiles: BTreeMap<String, ProfileSpec>,
+    /// Where the file was read from (its folder resolves relative paths).
+    #[serde(skip)]
+    pub path: PathBuf,
+}
+
+/// `[bench]`.
+#[derive(Debug, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct BenchSettings {
+    /// The method of the speed-up column.
+    pub baseline: String,
+    /// Learning-curve samples per stage (0 = no curves).
+    pub curve_points: usize,
+    /// Seeds of every run (a profile may override them).
+    pub seeds: Vec<u64>,
+    /// The profile `sos bench` runs without `--profile` (none: every scene, method and sweep).
+    pub default_profile: Option<String>,
+    /// Output folder, relative to the benchmark file (`--out` overrides it).
+    pub out: PathBuf,
+}
+
+impl Default for BenchSettings {
+    fn default() -> Self {
+        BenchSettings {
+            baseline: "default".into(),
+            curve_points: 6,
+            seeds: vec![0],
+            default_profile: None,
+            out: PathBuf::from("../runs/bench"),
+        }
+    }
+}
+
+/// `[scenes.<name>]`: a base run config and overrides.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneSpec {
+    /// Base run config, relative to the benchmark file.
+    pub config: PathBuf,
+    /// Overrides by dotted key path.
+    #[serde(default)]
+    pub set: toml::Table,
+    /// Write the built-in synthetic scene in a dataset layout first and read it from there:
+    /// `layout` (`llff`, `blender`, `colmap`, `colmap_txt`, `blendedmvs`, `blendedmvs_nsvf`,
+    /// `co3d`, `tanks_temples`) plus any key of the `synthetic` dataset (`rig`, `width`, ...).
+    pub generate: Option<toml::Table>,
+    /// One line for the report.
+    #[serde(default)]
+    pub about: String,
+}
+
+/// `[methods.<name>]`: a named overlay on every scene's config.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MethodSpec {
+    /// Overrides by dotted key path.
+    #[serde(default)]
+    pub set: toml::Table,
+    /// One line for the report.
+    #[serde(default)]
+    pub about: String,
+}
+
+/// How a sweep combines the lists of its `vary` keys.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SweepMode {
+    /// Every combination (cartesian product).
+    #[default]
+    Product,
+    /// The i-th value of every list together (lists of equal length).
+    Zip,
+}
+
+/// `[[sweep]]`: runs that vary config keys on top of a method.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SweepSpec {
+    /// Name (unique).
+    pub name: String,
+    /// The method the sweep varies (default: the baseline).
+    pub method: Option<String>,
+    /// Scenes the sweep runs on (default: every scene of the profile); only those the profile
+    /// also runs are used.
+    pub scenes: Option<Vec<String>>,
+    /// Dotted key path → list of values.
+    #[serde(default)]
+    pub vary: toml::Table,
+    /// How the `vary` lists combine.
+    #[serde(default)]
+    pub mode: SweepMode,
+    /// Names of the points in order (default: `key=value`).
+    pub labels: Option<Vec<String>>,
+    /// Explicit points instead of `vary`: each a label and overrides.
+    #[serde(default)]
+    pub points: Vec<SweepPoint>,
+    /// One line for the report.
+    #[serde(default)]
+    pub about: String,
+}
+
+/// One explicit point of a sweep.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SweepPoint {
+    /// Name of the point in the report.
+    pub label: String,
+    /// Overrides by dotted key path.
+    #[serde(default)]
+    pub set: toml::Table,
+}
+
+/// `[profiles.<name>]`: which scenes, methods, sweeps and seeds run.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ProfileSpec {
+    /// Scene names (default: every scene).
+    pub scenes: Option<Vec<String>>,
+    /// Method names (default: every method).
+    pub methods: Option<Vec<String>>,
+    /// Sweep names (default: none).
+    #[serde(default)]
+    pub sweeps: Vec<String>,
+    /// Seeds (default: `[bench] seeds`).
+    pub seeds: Option<Vec<u64>>,
+    /// Learning-curve samples per stage (default: `[bench] curve_points`).
+    pub curve_points: Option<usize>,
+    /// Overrides applied to every run of the profile, after the scene's and before the
+    /// method's.
+    #[serde(default)]
+    pub set: toml::Table,
+    /// One line for the report.
+    #[serde(default)]
+    pub about: String,
+}
+
+impl BenchFile {
+    /// Reads and checks a benchmark file; errors name the file and the entry.
+    pub fn load(path: &Path) -> anyhow::Result<BenchFile> {
+        let text =
+            std::fs::read_to_string(path).with_context(|| format!("reading benchmark file {}", path.display()))?;
+        let mut file: BenchFile =
+            toml::from_str(&text).with_context(|| format!("benchmark file {}", path.display()))?;
+        file.path = path.to_path_buf();
+        file.check()?;
+        Ok(file)
+    }
+
+    /// The folder relative paths start from.
+    pub fn dir(&self) -> PathBuf {
+        self.path.parent().map(Path::to_path_buf).unwrap_or_default()
+    }
+
+    /// Cross-references: every name a profile or sweep uses exists, names are unique and
+    /// file-safe.
+    fn check(&self) -> anyhow::Result<()> {
+        let file = self.path.display();
+        if self.scenes.is_empty() {
+            bail!("{file}: no `[scenes.<name>]` entry; add at least one scene");
+        }
+        if !self.methods.contains_key(&self.bench.baseline) {
+            bail!(
+                "{file}: `bench.baseline` names method `{}`, which is not defined; methods: {}",
+                self.bench.baseline,
+                names(self.methods.keys())
+            );
+        }
+        for name in self.scenes.keys().chain(self.methods.keys()).chain(self.sweep.iter().map(|s| &s.name)) {
+            if !is_safe_name(name) {
+                bail!("{file}: name `{name}` may only hold letters, digits, `-` and `_`");
+            }
+        }
+        let mut seen = std::collections::BTreeSet::new();
+        for s in &self.sweep {
+            if !seen.insert(&s.name) {
+                bail!("{file}: two sweeps are named `{}`", s.name);
+            }
+            if let Some(m) = &s.method {
+                if !self.methods.contains_key(m) {
+                    bail!(
+                        "{file}: sweep `{}` varies method `{m}`, which is not defined; methods: {}",
+                        s.name,
+                        names(self.methods.keys())
+                    );
+                }
+            }
+            for scene in s.scenes.iter().flatten() {
+                if !self.scenes.contains_key(scene) {
+                    bail!(
+                        "{file}: sweep `{}` names scene `{scene}`, which is not defined; scenes: {}",
+                        s.name,
+                        names(self.scenes.keys())
+                    );
+                }
+            }
+            if s.vary.is_empty() == s.points.is_empty() {
+                bail!(
+                    "{file}: sweep `{}` needs either `vary` (key path = [values]) or `points`, not both or neither",
+                    s.name
+                );
+            }
+        }
+        for (name, p) in &self.profiles {
+            for scene in p.scenes.iter().flatten() {
+                if !self.scenes.contains_key(scene) {
+                    bail!(
+                        "{file}: profile `{name}` names scene `{scene}`, which is not defined; scenes: {}",
+                        names(self.scenes.keys())
+                    );
+                }
+            }
+            for method in p.methods.iter().flatten() {
+                if !self.methods.contains_key(method) {
+                    bail!(
+                        "{file}: profile `{name}` names method `{method}`, which is not defined; methods: {}",
+                        names(self.methods.keys())
+                    );
+                }
+            }
+            for sweep in &p.sweeps {
+                if !self.sweep.iter().any(|s| &s.name == sweep) {
+                    bail!(
+                        "{file}: profile `{name}` names sweep `{sweep}`, which is not defined; sweeps: {}",
+                        names(self.sweep.iter().map(|s| &s.name))
+                    );
+                }
+            }
+        }
+        if let Some(p) = &self.bench.default_profile {
+            if !self.profiles.contains_key(p) {
+                bail!(
+                    "{file}: `bench.default_profile` names profile `{p}`, which is not defined; profiles: {}",
+                    names(self.profiles.keys())
+                );
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Names for run ids and folders: letters, digits, `-`, `_`.
+pub fn is_safe_name(name: &str) -> bool {
+    !name.is_empty() && name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+}
+
+/// `a, b, c` (or `(none)`).
+pub fn names<'a>(items: impl Iterator<Item = &'a String>) -> String {
+    let all: Vec<&str> = items.map(String::as_str).collect();
+    if all.is_empty() {
+        "(none)".into()
+    } else {
+        all.join(", ")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(text: &str) -> anyhow::Result<BenchFile> {
+        let mut file: BenchFile = toml::from_str(text)?;
+        file.path = PathBuf::from("bench.toml");
+        file.check()?;
+        Ok(file)
+    }
+
+    const MINIMAL: &str = r#"
+[scenes.a]
+config = "a.toml"
+[methods.default]
+"#;
+
+    #[test]
+    fn a_minimal_file_parses_with_defaults() {
+        let file = parse(MINIMAL).unwrap();
+        assert_eq!(file.bench.baseline, "default");
+        assert_eq!(file.bench.seeds, vec![0]);
+        assert!(file.sweep.is_empty());
+    }
+
+    #[test]
+    fn names_that_do_not_exist_are_errors_naming_them() {
+        let e = parse(&format!("{MINIMAL}[profiles.q]\nscenes = [\"b\"]\n")).unwrap_err().to_string();
+        assert!(e.contains("profile `q`") && e.contains("scene `b`"), "{e}");
+        let e = parse(&format!("{MINIMAL}[[sweep]]\nname = \"s\"\nmethod = \"m\"\nvary = {{ seed = [1] }}\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("sweep `s`") && e.contains("method `m`"), "{e}");
+        let e = parse("[bench]\nbaseline = \"x\"\n[scenes.a]\nconfig = \"a.toml\"\n[methods.default]\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("bench.baseline"), "{e}");
+    }
+
+    #[test]
+    fn a_sweep_needs_vary_or_points() {
+        let e = parse(&format!("{MINIMAL}[[sweep]]\nname = \"s\"\n")).unwrap_err().to_string();
+        assert!(e.contains("either `vary`"), "{e}");
+    }
+
+    #[test]
+    fn unsafe_names_are_refused() {
+        let e = parse("[scenes.\"a/b\"]\nconfig = \"a.toml\"\n[methods.default]\n").unwrap_err().to_string();
+        assert!(e.contains("a/b"), "{e}");
+    }
+}

@@ -1,0 +1,213 @@
+//! End-to-end tests of `sos bench`: a tiny matrix runs, writes its records, report and plots;
+//! a rerun is all cached and rewrites nothing; bad key paths fail before any run; missing
+//! data is a skip and a broken run a recorded failure; shards merge into the single-process
+//! result; leftovers of a killed run are cleaned up.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+const SOS: &str = env!("CARGO_BIN_EXE_sos");
+
+fn temp_dir(test: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("sos-bench-{test}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn sos(args: &[&str], cwd: &Path) -> Output {
+    Command::new(SOS).args(args).current_dir(cwd).output().expect("the sos binary runs")
+}
+
+fn text(bytes: &[u8]) -> String {
+    String::from_utf8_lossy(bytes).into_owned()
+}
+
+/// A 32x24 scene, 40 + 4 steps: a run takes a second or two.
+const BASE: &str = r#"
+[scene]
+kind = "synthetic"
+width = 32
+height = 24
+views = 8
+hold_out_every = 4
+render_path_views = 2
+
+[field]
+kind = "voxel-grid"
+resolution = [16, 16, 16]
+initial_resolution = [16, 16, 16]
+upsample_at = []
+
+[train]
+steps = 40
+rays_per_step = 512
+checkpoint_every = 0
+
+[render]
+chunk = 2048
+
+[segment]
+steps = 4
+patches = 2
+patch_size = 8
+stride = 2
+offset_grid = 0
+"#;
+
+/// Writes `base.toml` and `bench.toml` (with `extra` appended) into `dir`.
+fn write_bench(dir: &Path, extra: &str) {
+    std::fs::write(dir.join("base.toml"), BASE).unwrap();
+    let bench = format!(
+        r#"[bench]
+curve_points = 3
+seeds = [0, 1]
+out = "results"
+
+[scenes.tiny]
+config = "base.toml"
+
+[scenes.missing]
+config = "base.toml"
+set = {{ scene = {{ kind = "llff", path = "no/such/folder" }} }}
+
+[methods.default]
+[methods.short]
+set = {{ "segment.steps" = 2 }}
+
+{extra}
+"#
+    );
+    std::fs::write(dir.join("bench.toml"), bench).unwrap();
+}
+
+fn json(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))).unwrap()
+}
+
+#[test]
+fn a_matrix_runs_reports_caches_and_merges_from_shards() {
+    let dir = temp_dir("matrix");
+    write_bench(&dir, "[[sweep]]\nname = \"steps\"\nscenes = [\"tiny\"]\nvary = { \"segment.steps\" = [2, 4] }\n");
+    let out = sos(&["bench", "bench.toml"], &dir);
+    let stderr = text(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    let results = dir.join("results").join("all");
+    // 2 scenes x 2 methods x 2 seeds + 2 sweep points x 2 seeds.
+    let runs: Vec<_> = std::fs::read_dir(results.join("runs")).unwrap().map(|e| e.unwrap().path()).collect();
+    assert_eq!(runs.len(), 12, "{runs:?}");
+    let done = json(&results.join("runs/tiny__default__s0.json"));
+    assert_eq!(done["status"], "done");
+    for key in ["psnr", "ssim", "nv_ari", "iou_fg", "iou_bg", "miou"] {
+        let v = done["outcome"]["metrics"][key].as_f64().unwrap_or_else(|| panic!("{key}: {done:#}"));
+        assert!(v.is_finite());
+    }
+    assert!(done["outcome"]["peak_rss_mib"].as_f64().unwrap() > 1.0);
+    assert!(done["config"].as_str().unwrap().contains("[field]"));
+    assert_eq!(done["hash"].as_str().unwrap().len(), 64);
+    assert!(done["machine"]["cores"].as_u64().unwrap() >= 1);
+    let curve1 = done["outcome"]["curves"]["stage1"].as_array().unwrap();
+    let curve2 = done["outcome"]["curves"]["stage2"].as_array().unwrap();
+    assert_eq!((curve1.len(), curve2.len()), (3, 3), "{done:#}");
+    let times: Vec<f64> = curve1.iter().map(|p| p["seconds"].as_f64().unwrap()).collect();
+    assert!(times.windows(2).all(|w| w[0] <= w[1]), "{times:?}");
+    // The stage-2 curve's last point is the final result.
+    assert_eq!(curve2[2]["miou"], done["outcome"]["metrics"]["miou"]);
+
+    let skipped = json(&results.join("runs/missing__default__s0.json"));
+    assert_eq!(skipped["status"], "skipped");
+    assert!(skipped["error"].as_str().unwrap().contains("path missing"), "{skipped:#}");
+    // The sweep point equal to the default reuses its result.
+    let reused = json(&results.join("runs/tiny__steps-1-4__s0.json"));
+    assert_eq!(reused["hash"], done["hash"]);
+    assert_eq!(reused["outcome"]["metrics"], done["outcome"]["metrics"]);
+
+    let report = json(&results.join("report.json"));
+    assert_eq!(report["counts"]["done"], 8);
+    assert_eq!(report["counts"]["skipped"], 4);
+    let md = std::fs::read_to_string(results.join("report.md")).unwrap();
+    assert!(md.contains("## tiny") && md.contains("| default |") && md.contains("steps: 2"), "{md}");
+    for plot in ["miou_vs_time", "psnr_vs_stage1_time", "tiny_miou_vs_time", "sweep_steps", "sweep_steps_time"] {
+        for ext in ["svg", "png"] {
+            let p = results.join("plots").join(format!("{plot}.{ext}"));
+            assert!(std::fs::metadata(&p).map(|m| m.len() > 100).unwrap_or(false), "{} missing", p.display());
+        }
+    }
+
+    // A rerun does nothing: every result is cached and no record is rewritten.
+    let stamp = |p: &Path| std::fs::metadata(p).unwrap().modified().unwrap();
+    let before = stamp(&results.join("runs/tiny__default__s0.json"));
+    let started = std::time::Instant::now();
+    let again = sos(&["bench", "bench.toml"], &dir);
+    assert!(again.status.success(), "{}", text(&again.stderr));
+    assert!(text(&again.stdout).contains("0 ran, 8 cached"), "{}", text(&again.stdout));
+    assert!(started.elapsed().as_secs_f64() < 5.0);
+    assert_eq!(stamp(&results.join("runs/tiny__default__s0.json")), before);
+
+    // Two shards merged give the single-process metrics, run for run.
+    for i in 0..2 {
+        let shard = format!("{i}/2");
+        let out_dir = format!("shard{i}");
+        let out = sos(&["bench", "bench.toml", "--shard", &shard, "--out", &out_dir], &dir);
+        assert!(out.status.success(), "{}", text(&out.stderr));
+    }
+    let merged = sos(&["bench", "merge", "shard0", "shard1", "--out", "merged"], &dir);
+    assert!(merged.status.success(), "{}", text(&merged.stderr));
+    let diff = sos(&["bench", "diff", "merged", "results/all"], &dir);
+    assert!(diff.status.success(), "{}{}", text(&diff.stdout), text(&diff.stderr));
+    // ... and diff notices a difference.
+    let single = dir.join("merged/runs/tiny__default__s0.json");
+    let mut record = json(&single);
+    record["outcome"]["metrics"]["miou"] = serde_json::json!(0.123);
+    std::fs::write(&single, serde_json::to_string(&record).unwrap()).unwrap();
+    let diff = sos(&["bench", "diff", "merged", "results/all"], &dir);
+    assert_eq!(diff.status.code(), Some(2));
+    assert!(text(&diff.stderr).contains("tiny__default__s0: mIoU"), "{}", text(&diff.stderr));
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
+fn an_unknown_key_path_fails_before_any_run() {
+    let dir = temp_dir("badpath");
+    write_bench(&dir, "[[sweep]]\nname = \"typo\"\nvary = { \"segment.stpes\" = [1, 2] }\n");
+    let out = sos(&["bench", "bench.toml"], &dir);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains("bench.toml") && stderr.contains("sweep `typo`") && stderr.contains("segment.stpes"),
+        "{stderr}"
+    );
+    assert!(!dir.join("results").exists(), "nothing may run");
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
+fn a_failing_run_is_recorded_and_the_matrix_goes_on() {
+    let dir = temp_dir("failing");
+    // An all-black teacher-free... a patch larger than the views fails inside the run.
+    write_bench(&dir, "[methods.broken]\nset = { segment = { patch_size = 200, stride = 1 } }\n");
+    std::fs::write(
+        dir.join("bench.toml"),
+        std::fs::read_to_string(dir.join("bench.toml")).unwrap().replace("seeds = [0, 1]", "seeds = [0]"),
+    )
+    .unwrap();
+    // Leftovers of a killed runner: a temporary record and a half-finished run folder.
+    let results = dir.join("results").join("all");
+    std::fs::create_dir_all(results.join("runs")).unwrap();
+    std::fs::create_dir_all(results.join("work/tiny__default__s0")).unwrap();
+    std::fs::write(results.join("runs/tiny__default__s0.json.tmp"), "{").unwrap();
+    std::fs::write(results.join("work/tiny__default__s0/checkpoint.bin.tmp"), "x").unwrap();
+    let out = sos(&["bench", "bench.toml"], &dir);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("1 runs failed: tiny__broken__s0"), "{stderr}");
+    let failed = json(&results.join("runs/tiny__broken__s0.json"));
+    assert_eq!(failed["status"], "failed");
+    assert!(failed["error"].as_str().unwrap().contains("patch"), "{failed:#}");
+    assert_eq!(json(&results.join("runs/tiny__default__s0.json"))["status"], "done");
+    assert!(!results.join("runs/tiny__default__s0.json.tmp").exists());
+    assert!(!results.join("work/tiny__default__s0/checkpoint.bin.tmp").exists());
+    let md = std::fs::read_to_string(results.join("report.md")).unwrap();
+    assert!(md.contains("failed"), "{md}");
+    std::fs::remove_dir_all(dir).ok();
+}
