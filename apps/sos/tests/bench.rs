@@ -127,7 +127,15 @@ fn a_matrix_runs_reports_caches_and_merges_from_shards() {
     assert_eq!(report["counts"]["skipped"], 4);
     let md = std::fs::read_to_string(results.join("report.md")).unwrap();
     assert!(md.contains("## tiny") && md.contains("| default |") && md.contains("steps: 2"), "{md}");
-    for plot in ["miou_vs_time", "psnr_vs_stage1_time", "tiny_miou_vs_time", "sweep_steps", "sweep_steps_time"] {
+    for plot in [
+        "miou_vs_time",
+        "miou_vs_time_by_scene",
+        "psnr_vs_stage1_time",
+        "psnr_vs_stage1_time_by_scene",
+        "tiny_miou_vs_time",
+        "sweep_steps",
+        "sweep_steps_time",
+    ] {
         for ext in ["svg", "png"] {
             let p = results.join("plots").join(format!("{plot}.{ext}"));
             assert!(std::fs::metadata(&p).map(|m| m.len() > 100).unwrap_or(false), "{} missing", p.display());

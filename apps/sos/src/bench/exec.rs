@@ -16,7 +16,9 @@ use sos_core::train::observer::TrainObserver;
 use sos_core::train::photometric::{train_photometric_observed, StepStats};
 use sos_core::train::Session;
 
-use super::record::{peak_rss_mib, Curves, Metrics, Outcome, Stage1Point, Stage2Point, Timing};
+use super::record::{
+    cpu_seconds, cpu_ticks, peak_rss_mib, stolen_between, Curves, Metrics, Outcome, Stage1Point, Stage2Point, Timing,
+};
 
 /// Arguments of `sos bench-exec`.
 #[derive(Debug, clap::Args)]
@@ -37,6 +39,7 @@ pub struct ExecArgs {
 /// Runs one benchmark run and writes its outcome.
 pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
     let started = Instant::now();
+    let ticks = cpu_ticks();
     let text = std::fs::read_to_string(&args.config).with_context(|| format!("reading {}", args.config.display()))?;
     let config = sos_core::config::RunConfig::parse(&text, &args.config)?;
     let mut session = Session::from_config(config, &args.config_dir)?;
@@ -80,7 +83,15 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
     }
     timing.curve_eval = curves.stage1_eval + curves.stage2_eval;
     timing.total = started.elapsed().as_secs_f64() - timing.curve_eval;
-    let outcome = Outcome { metrics, timing, peak_rss_mib: peak_rss_mib(), curves: curves.curves, notes };
+    let outcome = Outcome {
+        metrics,
+        timing,
+        peak_rss_mib: peak_rss_mib(),
+        cpu_seconds: cpu_seconds(),
+        cpu_stolen: ticks.zip(cpu_ticks()).and_then(|(a, b)| stolen_between(a, b)),
+        curves: curves.curves,
+        notes,
+    };
     crate::commands::write_json(&args.outcome, &outcome)
 }
 

@@ -119,6 +119,15 @@ pub struct Outcome {
     pub timing: Timing,
     /// Peak resident memory of the run's process, MiB.
     pub peak_rss_mib: Option<f64>,
+    /// CPU seconds (user + system) the run's process used; over the wall time, the cores it
+    /// kept busy (below the core count on a shared machine or in serial phases).
+    #[serde(default)]
+    pub cpu_seconds: Option<f64>,
+    /// Share of the machine's CPU time that its hypervisor gave to other guests during the
+    /// run (`steal` in `/proc/stat`): above a few percent, the times are those of a shared
+    /// machine, not of an idle one.
+    #[serde(default)]
+    pub cpu_stolen: Option<f64>,
     /// Learning curves.
     pub curves: Curves,
     /// Notes (e.g. a metric that was not finite).
@@ -285,6 +294,33 @@ pub fn peak_rss_mib() -> Option<f64> {
     Some(kib / 1024.0)
 }
 
+/// CPU seconds (user + system) this process has used so far (Linux `/proc/self/stat`, in
+/// the kernel's 100 Hz clock ticks).
+pub fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the command name, which is in parentheses and may hold spaces.
+    let rest = &stat[stat.rfind(')')? + 1..];
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    // utime and stime are fields 14 and 15 of the whole line, 12 and 13 after the name.
+    let ticks: f64 = fields.get(11)?.parse::<f64>().ok()? + fields.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
+}
+
+/// The machine's CPU time counters so far: (stolen, all), in clock ticks (Linux `/proc/stat`).
+pub fn cpu_ticks() -> Option<(u64, u64)> {
+    let stat = std::fs::read_to_string("/proc/stat").ok()?;
+    let line = stat.lines().find(|l| l.starts_with("cpu "))?;
+    let values: Vec<u64> = line.split_whitespace().skip(1).filter_map(|v| v.parse().ok()).collect();
+    // user nice system idle iowait irq softirq steal [guest guest_nice, already in user]
+    Some((*values.get(7)?, values.iter().take(8).sum()))
+}
+
+/// The share of CPU time stolen between two [`cpu_ticks`] readings.
+pub fn stolen_between(start: (u64, u64), end: (u64, u64)) -> Option<f64> {
+    let all = end.1.checked_sub(start.1)?;
+    (all > 0).then(|| end.0.saturating_sub(start.0) as f64 / all as f64)
+}
+
 /// The current UTC time as `YYYY-MM-DD HH:MM`.
 pub fn utc_now() -> String {
     let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
@@ -324,6 +360,17 @@ mod tests {
         if cfg!(target_os = "linux") {
             assert!(m.memory_gib > 0.0 && m.cpu != "unknown", "{m:?}");
             assert!(peak_rss_mib().is_some_and(|p| p > 0.0));
+            // Burn a little CPU so the count is positive.
+            let mut x = 0u64;
+            let t = std::time::Instant::now();
+            while t.elapsed().as_millis() < 30 {
+                x = x.wrapping_mul(31).wrapping_add(7);
+            }
+            assert!(x != 1 && cpu_seconds().is_some_and(|c| c > 0.0));
+            let (stolen, all) = cpu_ticks().unwrap();
+            assert!(stolen <= all && all > 0);
         }
+        assert_eq!(stolen_between((10, 100), (30, 300)), Some(0.1));
+        assert_eq!(stolen_between((10, 100), (10, 100)), None);
     }
 }

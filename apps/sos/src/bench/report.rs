@@ -54,6 +54,12 @@ pub struct Row {
     pub seconds: BTreeMap<String, Stat>,
     /// Largest peak resident memory over seeds, MiB.
     pub peak_rss_mib: Option<f64>,
+    /// CPU time over wall time of the run processes: the cores kept busy.
+    #[serde(default)]
+    pub cores_busy: Option<Stat>,
+    /// Share of the machine's CPU time its hypervisor took for other guests (0 = not shared).
+    #[serde(default)]
+    pub cpu_stolen: Option<Stat>,
     /// The baseline row's total time over this row's (above 1: faster than the baseline).
     pub speedup: Option<f64>,
     /// Runs that failed or were skipped, with why.
@@ -186,9 +192,19 @@ fn row(variant: &str, runs: &[&&RunRecord]) -> Row {
             .iter()
             .filter_map(|o| o.peak_rss_mib)
             .fold(None, |m: Option<f64>, v| Some(m.map_or(v, |m| m.max(v)))),
+        cores_busy: Stat::of(outcomes.iter().filter_map(|o| {
+            let wall = o.timing.total + o.timing.curve_eval;
+            o.cpu_seconds.filter(|_| wall > 0.0).map(|c| c / wall)
+        })),
+        cpu_stolen: Stat::of(outcomes.iter().filter_map(|o| o.cpu_stolen)),
         speedup: None,
         problems,
     }
+}
+
+/// A share as a whole percentage (the mean over seeds).
+fn percent(s: Option<&Stat>) -> String {
+    s.map_or("-".into(), |s| format!("{:.0}%", 100.0 * s.mean))
 }
 
 fn fmt_stat(s: Option<&Stat>, digits: usize) -> String {
@@ -213,7 +229,10 @@ impl Report {
         md.push_str(&format!(
             "Runs: {}. Metrics are means over held-out views, then mean ± std over seeds; times in seconds \
              (`total` is the run's time to its result, learning-curve evaluations excluded); speed-up is \
-             against the `{}` row of the same scene.\n",
+             against the `{}` row of the same scene; cores busy is the run's CPU time over its wall time \
+             (well below the core count: serial phases, or a machine shared with other work); CPU stolen is \
+             the share of the machine's CPU time its hypervisor gave to other guests during the run (above \
+             a few percent, the times are not those of an idle machine).\n",
             self.counts.iter().map(|(k, v)| format!("{v} {k}")).collect::<Vec<_>>().join(", "),
             self.meta.baseline
         ));
@@ -221,20 +240,20 @@ impl Report {
             md.push_str(&format!("\n## {}\n\n", scene.scene));
             md.push_str(&table(&scene.rows, true));
         }
-        md.push_str("\n## Plots\n\nIn `plots/`: `miou_vs_time` and `psnr_vs_stage1_time` over every scene, per scene `<scene>_miou_vs_time` with the Pareto front, per sweep `sweep_<name>` (mIoU) and `sweep_<name>_time`.\n");
+        md.push_str("\n## Plots\n\nIn `plots/`: `miou_vs_time` and `psnr_vs_stage1_time` (each method's mean over scenes, with the Pareto front; `_by_scene`: every scene's methods), per scene `<scene>_miou_vs_time` with the Pareto front, per sweep `sweep_<name>` (mIoU) and `sweep_<name>_time`.\n");
         md
     }
 
     /// The compact table of every scene's rows (for the README).
     pub fn summary_markdown(&self) -> String {
-        let mut md = String::from("| scene | method | mIoU | NV-ARI | PSNR dB | stage 1 s | stage 2 s | total s | peak MiB |\n|---|---|---|---|---|---|---|---|---|\n");
+        let mut md = String::from("| scene | method | mIoU | NV-ARI | PSNR dB | stage 1 s | stage 2 s | total s | peak MiB | cores busy | CPU stolen |\n|---|---|---|---|---|---|---|---|---|---|---|\n");
         for scene in &self.scenes {
             for r in &scene.rows {
                 let m = |k: &str, d| fmt_stat(r.metrics.get(k), d);
                 let s = |k: &str| fmt_stat(r.seconds.get(k), 1);
                 let status = if r.seeds.is_empty() { format!(" ({})", r.problems.join("; ")) } else { String::new() };
                 md.push_str(&format!(
-                    "| {} | {}{status} | {} | {} | {} | {} | {} | {} | {} |\n",
+                    "| {} | {}{status} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
                     scene.scene,
                     r.variant,
                     m("mIoU", 3),
@@ -243,7 +262,9 @@ impl Report {
                     s("stage1"),
                     s("stage2"),
                     s("total"),
-                    r.peak_rss_mib.map_or("-".into(), |p| format!("{p:.0}"))
+                    r.peak_rss_mib.map_or("-".into(), |p| format!("{p:.0}")),
+                    fmt_stat(r.cores_busy.as_ref(), 2),
+                    percent(r.cpu_stolen.as_ref())
                 ));
             }
         }
@@ -254,15 +275,15 @@ impl Report {
 /// One scene's rows as a Markdown table.
 fn table(rows: &[Row], with_problems: bool) -> String {
     let mut md = String::from(
-        "| method | seeds | mIoU | NV-ARI | IoU FG | IoU BG | PSNR dB | SSIM | stage 1 s | stage 2 s | masks s | total s | speed-up | peak MiB |\n\
-         |---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "| method | seeds | mIoU | NV-ARI | IoU FG | IoU BG | PSNR dB | SSIM | stage 1 s | stage 2 s | masks s | total s | speed-up | peak MiB | cores busy | CPU stolen |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     let mut notes = Vec::new();
     for r in rows {
         let m = |k: &str, d| fmt_stat(r.metrics.get(k), d);
         let s = |k: &str| fmt_stat(r.seconds.get(k), 1);
         md.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             r.variant,
             r.seeds.len(),
             m("mIoU", 3),
@@ -276,7 +297,9 @@ fn table(rows: &[Row], with_problems: bool) -> String {
             s("masks"),
             s("total"),
             r.speedup.map_or("-".into(), |x| format!("{x:.2}×")),
-            r.peak_rss_mib.map_or("-".into(), |p| format!("{p:.0}"))
+            r.peak_rss_mib.map_or("-".into(), |p| format!("{p:.0}")),
+            fmt_stat(r.cores_busy.as_ref(), 2),
+            percent(r.cpu_stolen.as_ref())
         ));
         if with_problems {
             notes.extend(r.problems.iter().map(|p| format!("- `{}`, {p}\n", r.variant)));
@@ -313,35 +336,51 @@ fn point(r: &Row, time: &str, metric: &str) -> Option<(f64, f64)> {
 fn write_plots(out: &Path, report: &Report, records: &[RunRecord]) -> anyhow::Result<()> {
     let dir = out.join("plots");
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-    // Every scene at once: one series per method or sweep, a point per scene.
-    for (stem, time, metric, x_label, y_label, title) in [
-        ("miou_vs_time", "total", "mIoU", "run time (s)", "mIoU", "mIoU against run time, every scene"),
+    for (stem, time, metric, x_label, y_label, what) in [
+        ("miou_vs_time", "total", "mIoU", "run time (s)", "mIoU", "mIoU against run time"),
         (
             "psnr_vs_stage1_time",
             "stage1",
             "PSNR",
             "stage-1 time (s)",
             "held-out PSNR (dB)",
-            "PSNR against stage-1 time, every scene",
+            "PSNR against stage-1 time",
         ),
     ] {
-        let mut groups: BTreeMap<String, Vec<(f64, f64)>> = BTreeMap::new();
+        // Each method's mean over the scenes it finished, the Pareto front marked.
+        let mut per_method: BTreeMap<&str, Vec<(f64, f64)>> = BTreeMap::new();
+        // Every scene's method rows: one series per scene.
+        let mut per_scene: Vec<Series> = Vec::new();
         for scene in &report.scenes {
-            for r in &scene.rows {
-                let group = r.sweep.as_ref().map_or_else(|| r.method.clone(), |(s, _)| format!("sweep {s}"));
-                groups.entry(group).or_default().extend(point(r, time, metric));
-            }
+            let rows = scene.rows.iter().filter(|r| r.sweep.is_none());
+            let points: Vec<(f64, f64)> = rows
+                .filter_map(|r| {
+                    let p = point(r, time, metric)?;
+                    per_method.entry(&r.method).or_default().push(p);
+                    Some(p)
+                })
+                .collect();
+            per_scene.push(Series { label: scene.scene.clone(), points });
         }
-        let chart = Chart {
-            title: title.into(),
+        let methods = per_method
+            .into_iter()
+            .map(|(m, ps)| {
+                let n = ps.len() as f64;
+                let mean = ps.iter().fold((0.0, 0.0), |(x, y), p| (x + p.0 / n, y + p.1 / n));
+                Series { label: m.to_string(), points: vec![mean] }
+            })
+            .collect();
+        let chart = |title: String, series: Vec<Series>, pareto: bool| Chart {
+            title,
             x_label: x_label.into(),
             y_label: y_label.into(),
             x_categories: None,
-            series: groups.into_iter().map(|(label, points)| Series { label, points }).collect(),
+            series,
             lines: false,
-            pareto: false,
+            pareto,
         };
-        write_chart(&chart, &dir.join(stem))?;
+        write_chart(&chart(format!("{what}: each method's mean over scenes"), methods, true), &dir.join(stem))?;
+        write_chart(&chart(format!("{what}: every scene"), per_scene, false), &dir.join(format!("{stem}_by_scene")))?;
     }
     // Per scene: a point per row, the Pareto front of time against mIoU marked.
     for scene in &report.scenes {
@@ -442,8 +481,11 @@ pub fn update_readme(readme: &Path, report: &Report, out: &Path) -> anyhow::Resu
             readme.display()
         );
     };
-    let base = readme.parent().map(Path::to_path_buf).unwrap_or_default();
-    let plot = relative(&out.join("plots").join("miou_vs_time.svg"), &base);
+    let base = match readme.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let plot = relative(&out.join("plots").join("miou_vs_time_by_scene.svg"), &base);
     let block = format!(
         "{begin}\n_Written by `sos bench --profile {}`; last run {} UTC, commit {}, {}._\n\n{}\n![mIoU against run time]({})\n",
         report.meta.profile,
