@@ -145,12 +145,14 @@ fn a_matrix_runs_reports_caches_and_merges_from_shards() {
     // A rerun does nothing: every result is cached and no record is rewritten.
     let stamp = |p: &Path| std::fs::metadata(p).unwrap().modified().unwrap();
     let before = stamp(&results.join("runs/tiny__default__s0.json"));
+    let report_written = stamp(&results.join("report.json"));
     let started = std::time::Instant::now();
     let again = sos(&["bench", "bench.toml"], &dir);
     assert!(again.status.success(), "{}", text(&again.stderr));
     assert!(text(&again.stdout).contains("0 ran, 8 cached"), "{}", text(&again.stdout));
     assert!(started.elapsed().as_secs_f64() < 5.0);
     assert_eq!(stamp(&results.join("runs/tiny__default__s0.json")), before);
+    assert_eq!(stamp(&results.join("report.json")), report_written);
 
     // Two shards merged give the single-process metrics, run for run.
     for i in 0..2 {

@@ -20,7 +20,9 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> anyhow::Result<report::Report> {
     let mut merged: BTreeMap<String, (RunRecord, &Path)> = BTreeMap::new();
     for dir in dirs {
         let other = BenchMeta::load(dir)?;
-        if other.file != meta.file || other.profile != meta.profile {
+        // Machines may name the file by different paths: its name and the profile must agree.
+        let name = |m: &BenchMeta| Path::new(&m.file).file_name().map(|n| n.to_os_string());
+        if name(&other) != name(&meta) || other.profile != meta.profile {
             bail!(
                 "{} holds profile `{}` of {} but {} holds profile `{}` of {}: merge folders of one benchmark",
                 dir.display(),

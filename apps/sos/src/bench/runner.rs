@@ -82,6 +82,7 @@ pub fn run_all(
             .expect("valid template"),
     );
     let mut tally = Tally::default();
+    let mut changed = false;
     for (n, run) in runs.iter().enumerate() {
         bar.set_message(run.id.clone());
         let path = runs_dir.join(format!("{}.json", run.id));
@@ -125,6 +126,7 @@ pub fn run_all(
         let unchanged = cached || (record.status == Status::Skipped && skipped_unchanged(&path, &record));
         if !unchanged {
             record.save(&path)?;
+            changed = true;
         }
         records.push(record);
         let line = format!("[{}/{}] {}: {how}", n + 1, runs.len(), run.id);
@@ -139,7 +141,9 @@ pub fn run_all(
         }
     }
     bar.finish_and_clear();
-    report::write(out, &records, meta).context("writing the report")?;
+    if changed || !out.join("report.json").exists() {
+        report::write(out, &records, meta).context("writing the report")?;
+    }
     Ok(tally)
 }
 
@@ -204,7 +208,7 @@ fn execute(run: &PlannedRun, out: &Path, curve_points: usize) -> anyhow::Result<
     let _ = std::fs::remove_file(&outcome_path);
     let log_path = out.join("logs").join(format!("{}.log", run.id));
     let log = std::fs::File::create(&log_path).with_context(|| format!("creating {}", log_path.display()))?;
-    let exe = std::env::current_exe().context("finding the running `sos` binary")?;
+    let exe = own_binary()?;
     let status = Command::new(exe)
         .arg("bench-exec")
         .arg(&config_path)
@@ -227,6 +231,17 @@ fn execute(run: &PlannedRun, out: &Path, curve_points: usize) -> anyhow::Result<
         serde_json::from_str(&text).with_context(|| format!("{} is not an outcome", outcome_path.display()))?;
     std::fs::remove_file(&outcome_path).ok();
     Ok(outcome)
+}
+
+/// The binary to start runs with: this one, or, when it was rebuilt while the matrix runs
+/// (Linux then names the running file `<path> (deleted)`), the new one at the same path.
+fn own_binary() -> anyhow::Result<PathBuf> {
+    let exe = std::env::current_exe().context("finding the running `sos` binary")?;
+    let name = exe.to_string_lossy();
+    match name.strip_suffix(" (deleted)") {
+        Some(path) if Path::new(path).exists() => Ok(PathBuf::from(path)),
+        _ => Ok(exe),
+    }
 }
 
 fn describe(status: std::process::ExitStatus) -> String {
