@@ -4,23 +4,13 @@
 //! result; leftovers of a killed run are cleaned up.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
-const SOS: &str = env!("CARGO_BIN_EXE_sos");
+mod common;
+
+use common::{sos, text};
 
 fn temp_dir(test: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("sos-bench-{test}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
-fn sos(args: &[&str], cwd: &Path) -> Output {
-    Command::new(SOS).args(args).current_dir(cwd).output().expect("the sos binary runs")
-}
-
-fn text(bytes: &[u8]) -> String {
-    String::from_utf8_lossy(bytes).into_owned()
+    common::temp_dir("sos-bench", test)
 }
 
 /// A 32x24 scene, 40 + 4 steps: a run takes a second or two.

@@ -1,29 +1,18 @@
 //! End-to-end tests of the `sos` binary: plugin listing, `init` round trips, config errors
 //! (exit code 2 naming the file and key), and a tiny two-stage run with its outputs.
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::path::PathBuf;
 
 use sos_core::config::RunConfig;
 // Link the plugin registrations so configs with plugin kinds parse in this test binary.
 use sos_plugins as _;
 
-const SOS: &str = env!("CARGO_BIN_EXE_sos");
+mod common;
 
-/// A fresh temporary folder for one test.
+use common::{sos, text};
+
 fn temp_dir(test: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("sos-cli-{test}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
-fn sos(args: &[&str], cwd: &Path) -> Output {
-    Command::new(SOS).args(args).current_dir(cwd).output().expect("the sos binary runs")
-}
-
-fn text(bytes: &[u8]) -> String {
-    String::from_utf8_lossy(bytes).into_owned()
+    common::temp_dir("sos-cli", test)
 }
 
 /// The tiny run of the end-to-end tests: 80x60, 10 views, 24³ grid, 60 + `seg_steps` steps.

@@ -91,7 +91,7 @@ impl ImageEval {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::metrics::psnr_from_mse as psnr_of_mse;
+    use crate::metrics::psnr_from_mse;
 
     /// A summary taken from another pass's report carries its per-view values and both PSNR
     /// conventions unchanged.
@@ -102,9 +102,9 @@ mod tests {
         report.push("b", 4e-3, 0.8);
         let eval = ImageEval::from_report(&report, 1000, 0.5);
         assert_eq!(eval.views.iter().map(|v| v.view.as_str()).collect::<Vec<_>>(), ["a", "b"]);
-        assert!((eval.views[1].psnr - psnr_of_mse(4e-3)).abs() < 1e-9);
-        assert!((eval.psnr - psnr_of_mse(2.5e-3)).abs() < 1e-9, "{}", eval.psnr);
-        assert!((eval.psnr_mean_per_view - (psnr_of_mse(1e-3) + psnr_of_mse(4e-3)) / 2.0).abs() < 1e-9);
+        assert!((eval.views[1].psnr - psnr_from_mse(4e-3)).abs() < 1e-9);
+        assert!((eval.psnr - psnr_from_mse(2.5e-3)).abs() < 1e-9, "{}", eval.psnr);
+        assert!((eval.psnr_mean_per_view - (psnr_from_mse(1e-3) + psnr_from_mse(4e-3)) / 2.0).abs() < 1e-9);
         assert!((eval.ssim - 0.85).abs() < 1e-12);
         assert!((eval.render_rays_per_second - 2000.0).abs() < 1e-6);
     }

@@ -135,7 +135,7 @@ fn run_file(
         for r in &runs {
             println!(
                 "{}  {}{}",
-                r.id,
+                r.key.id,
                 &r.hash[..12],
                 r.skip.as_ref().map_or(String::new(), |s| format!("  skipped: {s}"))
             );
@@ -161,8 +161,8 @@ fn run_file(
     );
     if let Some(readme) = readme {
         let records = record::load_all(&out)?;
-        let ids: std::collections::BTreeSet<&str> = runs.iter().map(|r| r.id.as_str()).collect();
-        let mine: Vec<_> = records.into_iter().filter(|r| ids.contains(r.id.as_str())).collect();
+        let ids: std::collections::BTreeSet<&str> = runs.iter().map(|r| r.key.id.as_str()).collect();
+        let mine: Vec<_> = records.into_iter().filter(|r| ids.contains(r.key.id.as_str())).collect();
         report::update_readme(&readme, &report::build(&mine, &meta), &out)?;
         println!("updated {}", readme.display());
     }

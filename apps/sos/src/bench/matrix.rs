@@ -48,9 +48,9 @@ impl Generate {
     }
 }
 
-/// One run of the matrix.
-#[derive(Debug, Clone)]
-pub struct PlannedRun {
+/// Who a run is in the matrix: what a planned run and its record share.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RunKey {
     /// `<scene>__<variant>__s<seed>`: the record's file name.
     pub id: String,
     /// Scene name.
@@ -63,6 +63,13 @@ pub struct PlannedRun {
     pub sweep: Option<SweepCoord>,
     /// The run's seed.
     pub seed: u64,
+}
+
+/// One run of the matrix.
+#[derive(Debug, Clone)]
+pub struct PlannedRun {
+    /// Who it is.
+    pub key: RunKey,
     /// The folder the config's relative paths resolve against.
     pub config_dir: PathBuf,
     /// A layout to write first.
@@ -170,10 +177,10 @@ pub fn plan(file: &BenchFile, profile: Option<&str>, out: &Path) -> anyhow::Resu
             }
         }
     }
-    runs.sort_by(|a, b| a.id.cmp(&b.id));
+    runs.sort_by(|a, b| a.key.id.cmp(&b.key.id));
     for w in runs.windows(2) {
-        if w[0].id == w[1].id {
-            bail!("{fpath}: two runs would share the id `{}` (two sweep points with one label?)", w[0].id);
+        if w[0].key.id == w[1].key.id {
+            bail!("{fpath}: two runs would share the id `{}` (two sweep points with one label?)", w[0].key.id);
         }
     }
     Ok(Matrix { profile: profile_name.unwrap_or_else(|| "all".into()), curve_points, runs })
@@ -246,12 +253,14 @@ impl RunContext<'_> {
             };
             let hash = run_hash(&config, self.generate, self.curve_points);
             out.push(PlannedRun {
-                id: format!("{}__{slug}__s{seed}", self.scene),
-                scene: self.scene.to_string(),
-                method: method.to_string(),
-                variant,
-                sweep: coord,
-                seed,
+                key: RunKey {
+                    id: format!("{}__{slug}__s{seed}", self.scene),
+                    scene: self.scene.to_string(),
+                    method: method.to_string(),
+                    variant,
+                    sweep: coord,
+                    seed,
+                },
                 config_dir: self.config_dir.to_path_buf(),
                 generate: self.generate.cloned(),
                 config,
@@ -451,14 +460,14 @@ mod tests {
         let m = plan(&file.unwrap(), None, &dir).unwrap();
         // 2 scenes x 2 methods x 2 seeds + 4 product points x 2 seeds on one scene.
         assert_eq!(m.runs.len(), 8 + 8);
-        let swept: Vec<_> = m.runs.iter().filter(|r| r.sweep.is_some()).collect();
-        assert!(swept.iter().all(|r| r.scene == "a" && r.method == "default"));
+        let swept: Vec<_> = m.runs.iter().filter(|r| r.key.sweep.is_some()).collect();
+        assert!(swept.iter().all(|r| r.key.scene == "a" && r.key.method == "default"));
         let steps = |r: &PlannedRun| r.config.get("segment").unwrap().get("steps").unwrap().as_integer().unwrap();
         assert!(swept.iter().any(|r| steps(r) == 6));
         // Runs with one config share a hash; different configs do not.
-        let a0 = m.runs.iter().find(|r| r.id == "a__default__s0").unwrap();
-        let b0 = m.runs.iter().find(|r| r.id == "b__default__s0").unwrap();
-        let a1 = m.runs.iter().find(|r| r.id == "a__default__s1").unwrap();
+        let a0 = m.runs.iter().find(|r| r.key.id == "a__default__s0").unwrap();
+        let b0 = m.runs.iter().find(|r| r.key.id == "b__default__s0").unwrap();
+        let a1 = m.runs.iter().find(|r| r.key.id == "a__default__s1").unwrap();
         assert_eq!(a0.hash, b0.hash);
         assert_ne!(a0.hash, a1.hash);
     }
@@ -470,7 +479,7 @@ mod tests {
         );
         let (dir, file) = bench(&body);
         let m = plan(&file.unwrap(), None, &dir).unwrap();
-        let labels: Vec<_> = m.runs.iter().filter_map(|r| r.sweep.as_ref().map(|s| s.label.clone())).collect();
+        let labels: Vec<_> = m.runs.iter().filter_map(|r| r.key.sweep.as_ref().map(|s| s.label.clone())).collect();
         assert_eq!(labels.len(), 2);
         assert!(labels.contains(&"lr=0.1, steps=5".to_string()), "{labels:?}");
     }
@@ -494,19 +503,19 @@ mod tests {
         );
         let (dir, file) = bench(&body);
         let m = plan(&file.unwrap(), None, &dir).unwrap();
-        let vit = m.runs.iter().find(|r| r.method == "vit").unwrap();
+        let vit = m.runs.iter().find(|r| r.key.method == "vit").unwrap();
         assert!(vit.skip.as_deref().unwrap().contains("path missing"), "{:?}", vit.skip);
-        let alien = m.runs.iter().find(|r| r.method == "alien").unwrap();
+        let alien = m.runs.iter().find(|r| r.key.method == "alien").unwrap();
         assert!(alien.skip.as_deref().unwrap().contains("not registered"), "{:?}", alien.skip);
-        assert!(m.runs.iter().filter(|r| r.method == "default").all(|r| r.skip.is_none()));
+        assert!(m.runs.iter().filter(|r| r.key.method == "default").all(|r| r.skip.is_none()));
     }
 
     #[test]
     fn shards_partition_the_matrix() {
         let (dir, file) = bench(&format!("{HEAD}[bench]\nseeds = [0, 1, 2]\n"));
         let m = plan(&file.unwrap(), None, &dir).unwrap();
-        let ids: Vec<String> = m.runs.iter().map(|r| r.id.clone()).collect();
-        let mut joined: Vec<String> = (0..3).flat_map(|i| shard(m.runs.clone(), i, 3)).map(|r| r.id).collect();
+        let ids: Vec<String> = m.runs.iter().map(|r| r.key.id.clone()).collect();
+        let mut joined: Vec<String> = (0..3).flat_map(|i| shard(m.runs.clone(), i, 3)).map(|r| r.key.id).collect();
         joined.sort();
         assert_eq!(joined, ids);
         assert!(shard(m.runs.clone(), 0, 3).len() >= 4);

@@ -34,10 +34,10 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> anyhow::Result<report::Report> {
             );
         }
         for r in load_all(dir)? {
-            match merged.get(&r.id) {
+            match merged.get(&r.key.id) {
                 Some((kept, from)) if kept.hash != r.hash => bail!(
                     "run `{}` has config hash {} in {} but {} in {}: the folders come from different configs",
-                    r.id,
+                    r.key.id,
                     &kept.hash[..12],
                     from.display(),
                     &r.hash[..12],
@@ -45,7 +45,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> anyhow::Result<report::Report> {
                 ),
                 Some(_) => {}
                 None => {
-                    merged.insert(r.id.clone(), (r, dir));
+                    merged.insert(r.key.id.clone(), (r, dir));
                 }
             }
         }
@@ -54,7 +54,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> anyhow::Result<report::Report> {
     std::fs::create_dir_all(&runs_dir).with_context(|| format!("creating {}", runs_dir.display()))?;
     let records: Vec<RunRecord> = merged.into_values().map(|(r, _)| r).collect();
     for r in &records {
-        r.save(&runs_dir.join(format!("{}.json", r.id)))?;
+        r.save(&runs_dir.join(format!("{}.json", r.key.id)))?;
     }
     meta.shard = None;
     crate::commands::write_json(&out.join("bench.json"), &meta)?;
@@ -68,7 +68,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> anyhow::Result<report::Report> {
 /// metrics (exactly; runs are deterministic per seed). Errors list every difference.
 pub fn diff(a: &Path, b: &Path) -> anyhow::Result<()> {
     let (ra, rb) = (load_all(a)?, load_all(b)?);
-    let index = |rs: &[RunRecord]| rs.iter().map(|r| (r.id.clone(), r.clone())).collect::<BTreeMap<_, _>>();
+    let index = |rs: &[RunRecord]| rs.iter().map(|r| (r.key.id.clone(), r.clone())).collect::<BTreeMap<_, _>>();
     let (ia, ib) = (index(&ra), index(&rb));
     let mut differences = Vec::new();
     for id in ia.keys().chain(ib.keys()).collect::<std::collections::BTreeSet<_>>() {

@@ -7,7 +7,7 @@ use std::path::Path;
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
 
-use super::matrix::{PlannedRun, SweepCoord};
+use super::matrix::{PlannedRun, RunKey};
 
 /// How a run ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -177,18 +177,9 @@ impl Machine {
 /// `<out>/runs/<run-id>.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RunRecord {
-    /// `<scene>__<variant>__s<seed>`.
-    pub id: String,
-    /// Scene name.
-    pub scene: String,
-    /// Method name (the varied method, for a sweep point).
-    pub method: String,
-    /// The report row: the method, or `<sweep>: <label>`.
-    pub variant: String,
-    /// The sweep point, if any.
-    pub sweep: Option<SweepCoord>,
-    /// The run's seed.
-    pub seed: u64,
+    /// Who the run is in the matrix (its fields sit at the top level of the JSON).
+    #[serde(flatten)]
+    pub key: RunKey,
     /// Hash of the resolved config (and generated scene): equal hashes, equal results.
     pub hash: String,
     /// How it ended.
@@ -217,12 +208,7 @@ impl RunRecord {
         commit: &str,
     ) -> RunRecord {
         RunRecord {
-            id: run.id.clone(),
-            scene: run.scene.clone(),
-            method: run.method.clone(),
-            variant: run.variant.clone(),
-            sweep: run.sweep.clone(),
-            seed: run.seed,
+            key: run.key.clone(),
             hash: run.hash.clone(),
             status,
             error,
@@ -258,7 +244,7 @@ pub fn load_all(dir: &Path) -> anyhow::Result<Vec<RunRecord>> {
             out.push(RunRecord::load(&path)?);
         }
     }
-    out.sort_by(|a, b| a.id.cmp(&b.id));
+    out.sort_by(|a, b| a.key.id.cmp(&b.key.id));
     Ok(out)
 }
 

@@ -96,7 +96,7 @@ pub struct Report {
 pub fn build(records: &[RunRecord], meta: &BenchMeta) -> Report {
     let mut by_scene: BTreeMap<&str, Vec<&RunRecord>> = BTreeMap::new();
     for r in records {
-        by_scene.entry(&r.scene).or_default().push(r);
+        by_scene.entry(&r.key.scene).or_default().push(r);
     }
     let scenes = by_scene.into_iter().map(|(scene, runs)| scene_table(scene, &runs, &meta.baseline)).collect();
     let mut counts = BTreeMap::new();
@@ -133,7 +133,7 @@ fn scene_table(scene: &str, runs: &[&RunRecord], baseline: &str) -> SceneTable {
     // Methods first (baseline leading), then sweep points in sweep order.
     let mut variants: Vec<(&str, Option<(&str, usize)>)> = Vec::new();
     for r in runs {
-        let key = (r.variant.as_str(), r.sweep.as_ref().map(|s| (s.name.as_str(), s.index)));
+        let key = (r.key.variant.as_str(), r.key.sweep.as_ref().map(|s| (s.name.as_str(), s.index)));
         if !variants.contains(&key) {
             variants.push(key);
         }
@@ -143,7 +143,7 @@ fn scene_table(scene: &str, runs: &[&RunRecord], baseline: &str) -> SceneTable {
     let mut rows: Vec<Row> = variants
         .iter()
         .map(|(variant, _)| {
-            let mine: Vec<&&RunRecord> = runs.iter().filter(|r| r.variant == *variant).collect();
+            let mine: Vec<&&RunRecord> = runs.iter().filter(|r| r.key.variant == *variant).collect();
             row(variant, &mine)
         })
         .collect();
@@ -177,15 +177,15 @@ fn row(variant: &str, runs: &[&&RunRecord]) -> Row {
         .filter(|r| r.status != Status::Done)
         .map(|r| {
             let why = r.error.as_deref().unwrap_or("").lines().next().unwrap_or("").to_string();
-            format!("seed {}: {} ({why})", r.seed, if r.status == Status::Failed { "failed" } else { "skipped" })
+            format!("seed {}: {} ({why})", r.key.seed, if r.status == Status::Failed { "failed" } else { "skipped" })
         })
         .collect();
     let first = runs[0];
     Row {
         variant: variant.to_string(),
-        method: first.method.clone(),
-        sweep: first.sweep.as_ref().map(|s| (s.name.clone(), s.label.clone())),
-        seeds: done.iter().map(|r| r.seed).collect(),
+        method: first.key.method.clone(),
+        sweep: first.key.sweep.as_ref().map(|s| (s.name.clone(), s.label.clone())),
+        seeds: done.iter().map(|r| r.key.seed).collect(),
         metrics,
         seconds,
         peak_rss_mib: outcomes
@@ -317,15 +317,9 @@ pub fn write(out: &Path, records: &[RunRecord], meta: &BenchMeta) -> anyhow::Res
     let report = build(records, meta);
     crate::commands::write_json(&out.join("report.json"), &report)?;
     let md = out.join("report.md");
-    write_atomic(&md, &report.to_markdown())?;
+    crate::commands::write_atomic(&md, &report.to_markdown())?;
     write_plots(out, &report, records)?;
     Ok(report)
-}
-
-fn write_atomic(path: &Path, text: &str) -> anyhow::Result<()> {
-    let tmp = path.with_extension("md.tmp");
-    std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
 }
 
 /// Mean (run time, metric) of a row.
@@ -406,14 +400,14 @@ fn write_plots(out: &Path, report: &Report, records: &[RunRecord]) -> anyhow::Re
     // Per sweep: the metric and the time against the swept value, a series per scene.
     let mut sweeps: BTreeMap<&str, Vec<&RunRecord>> = BTreeMap::new();
     for r in records.iter().filter(|r| r.status == Status::Done) {
-        if let Some(s) = &r.sweep {
+        if let Some(s) = &r.key.sweep {
             sweeps.entry(&s.name).or_default().push(r);
         }
     }
     for (name, runs) in sweeps {
-        let numeric = runs.iter().all(|r| r.sweep.as_ref().and_then(|s| s.x).is_some());
+        let numeric = runs.iter().all(|r| r.key.sweep.as_ref().and_then(|s| s.x).is_some());
         let mut labels: Vec<(usize, String)> =
-            runs.iter().filter_map(|r| r.sweep.as_ref().map(|s| (s.index, s.label.clone()))).collect();
+            runs.iter().filter_map(|r| r.key.sweep.as_ref().map(|s| (s.index, s.label.clone()))).collect();
         labels.sort();
         labels.dedup();
         for (suffix, y_label, get) in [
@@ -426,15 +420,15 @@ fn write_plots(out: &Path, report: &Report, records: &[RunRecord]) -> anyhow::Re
         ] {
             let mut by_scene: BTreeMap<&str, BTreeMap<usize, Vec<f64>>> = BTreeMap::new();
             for r in &runs {
-                let s = r.sweep.as_ref().expect("sweep runs");
+                let s = r.key.sweep.as_ref().expect("sweep runs");
                 if let Some(y) = get(r) {
-                    by_scene.entry(&r.scene).or_default().entry(s.index).or_default().push(y);
+                    by_scene.entry(&r.key.scene).or_default().entry(s.index).or_default().push(y);
                 }
             }
             let x_of = |index: usize| -> f64 {
                 if numeric {
                     runs.iter()
-                        .find_map(|r| r.sweep.as_ref().filter(|s| s.index == index).and_then(|s| s.x))
+                        .find_map(|r| r.key.sweep.as_ref().filter(|s| s.index == index).and_then(|s| s.x))
                         .unwrap_or(index as f64)
                 } else {
                     labels.iter().position(|(i, _)| *i == index).unwrap_or(0) as f64
@@ -496,7 +490,7 @@ pub fn update_readme(readme: &Path, report: &Report, out: &Path) -> anyhow::Resu
         plot.display()
     );
     let updated = format!("{}{block}{}", &text[..b], &text[e..]);
-    write_atomic(readme, &updated)
+    crate::commands::write_atomic(readme, &updated)
 }
 
 /// `path` relative to `base` when it lies under it.

@@ -84,15 +84,15 @@ pub fn run_all(
     let mut tally = Tally::default();
     let mut changed = false;
     for (n, run) in runs.iter().enumerate() {
-        bar.set_message(run.id.clone());
-        let path = runs_dir.join(format!("{}.json", run.id));
+        bar.set_message(run.key.id.clone());
+        let path = runs_dir.join(format!("{}.json", run.key.id));
         let started = Instant::now();
         let done = |r: &RunRecord| r.status == Status::Done && r.hash == run.hash;
         let mut cached = false;
         let (record, how) = if let Some(reason) = &run.skip {
             tally.skipped += 1;
             (RunRecord::new(run, Status::Skipped, Some(reason.clone()), None, commit), format!("skipped: {reason}"))
-        } else if let Some(r) = existing.iter().chain(&records).find(|r| r.id == run.id && done(r)) {
+        } else if let Some(r) = existing.iter().chain(&records).find(|r| r.key.id == run.key.id && done(r)) {
             tally.cached += 1;
             cached = true;
             (r.clone(), "cached".into())
@@ -100,9 +100,8 @@ pub fn run_all(
             // Another run of the matrix has this very config (a sweep point at the default).
             tally.cached += 1;
             let mut copy = r.clone();
-            let note = format!("same config as `{}`: its result is reused", r.id);
-            (copy.id, copy.scene, copy.method, copy.variant, copy.sweep) =
-                (run.id.clone(), run.scene.clone(), run.method.clone(), run.variant.clone(), run.sweep.clone());
+            let note = format!("same config as `{}`: its result is reused", r.key.id);
+            copy.key = run.key.clone();
             if let Some(o) = copy.outcome.as_mut() {
                 o.notes.push(note.clone());
             }
@@ -115,7 +114,7 @@ pub fn run_all(
                     (RunRecord::new(run, Status::Done, None, Some(outcome), commit), summary)
                 }
                 Err(e) => {
-                    tally.failed.push(run.id.clone());
+                    tally.failed.push(run.key.id.clone());
                     let message = format!("{e:#}");
                     let first = message.lines().next().unwrap_or("").to_string();
                     (RunRecord::new(run, Status::Failed, Some(message), None, commit), format!("FAILED: {first}"))
@@ -123,13 +122,15 @@ pub fn run_all(
             }
         };
         // Unchanged records are not rewritten, so a rerun of a finished matrix writes nothing.
-        let unchanged = cached || (record.status == Status::Skipped && skipped_unchanged(&path, &record));
+        let unchanged = cached
+            || (record.status == Status::Skipped
+                && existing.iter().any(|old| old.key.id == run.key.id && same_skip(old, &record)));
         if !unchanged {
             record.save(&path)?;
             changed = true;
         }
         records.push(record);
-        let line = format!("[{}/{}] {}: {how}", n + 1, runs.len(), run.id);
+        let line = format!("[{}/{}] {}: {how}", n + 1, runs.len(), run.key.id);
         if bar.is_hidden() {
             eprintln!("{line}");
         } else {
@@ -147,14 +148,9 @@ pub fn run_all(
     Ok(tally)
 }
 
-/// Whether a skip record on disk says the same (its time aside), so it need not be rewritten.
-fn skipped_unchanged(path: &Path, record: &RunRecord) -> bool {
-    RunRecord::load(path).is_ok_and(|old| {
-        old.status == Status::Skipped
-            && old.error == record.error
-            && old.hash == record.hash
-            && old.commit == record.commit
-    })
+/// Whether an earlier skip record says the same (its time aside), so it need not be rewritten.
+fn same_skip(old: &RunRecord, new: &RunRecord) -> bool {
+    old.status == Status::Skipped && old.error == new.error && old.hash == new.hash && old.commit == new.commit
 }
 
 /// What a finished run prints.
@@ -190,7 +186,7 @@ fn execute(run: &PlannedRun, out: &Path, curve_points: usize) -> anyhow::Result<
     let work = out.join("work");
     let absolute =
         |p: &Path| if p.is_absolute() { p.to_path_buf() } else { std::env::current_dir().unwrap_or_default().join(p) };
-    let run_dir = work.join(&run.id);
+    let run_dir = work.join(&run.key.id);
     // A run killed midway left a partial folder: start it over cleanly.
     if run_dir.exists() {
         std::fs::remove_dir_all(&run_dir)
@@ -198,15 +194,15 @@ fn execute(run: &PlannedRun, out: &Path, curve_points: usize) -> anyhow::Result<
     }
     let mut config = run.config.clone();
     if let Value::Table(t) = &mut config {
-        t.insert("name".into(), Value::String(run.id.clone()));
+        t.insert("name".into(), Value::String(run.key.id.clone()));
         t.insert("output_dir".into(), Value::String(absolute(&work).display().to_string()));
     }
-    let config_path = work.join(format!("{}.toml", run.id));
+    let config_path = work.join(format!("{}.toml", run.key.id));
     std::fs::write(&config_path, toml::to_string(&config)?)
         .with_context(|| format!("writing {}", config_path.display()))?;
-    let outcome_path = work.join(format!("{}.outcome.json", run.id));
+    let outcome_path = work.join(format!("{}.outcome.json", run.key.id));
     let _ = std::fs::remove_file(&outcome_path);
-    let log_path = out.join("logs").join(format!("{}.log", run.id));
+    let log_path = out.join("logs").join(format!("{}.log", run.key.id));
     let log = std::fs::File::create(&log_path).with_context(|| format!("creating {}", log_path.display()))?;
     let exe = own_binary()?;
     let status = Command::new(exe)
