@@ -25,6 +25,7 @@
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use sos_core::derived::{DerivedSetting, PatchFacts};
 use sos_core::error::{BuildError, ExtractError};
 use sos_core::image::RgbImage;
 use sos_core::plugin::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};
@@ -33,6 +34,12 @@ use sos_core::registry::Registration;
 const KIND: &str = "cell-stats";
 /// Bump when the features change, so cached teacher features are recomputed.
 const VERSION: u32 = 3;
+/// Teacher cells across a stage-2 patch when `cell` is left to the run: an 8x8 grid was the
+/// better of 8- and 4-px cells on 64-ray patches of the object-centric rig and on 32-ray
+/// patches of the unbounded NeRF++ rig (benchmarks/RESULTS.md, "nerf++ teacher cells").
+pub const CELLS_PER_PATCH: usize = 8;
+/// Cell side outside a run (no patch to follow), the 8x8 grid of a 64-ray patch.
+const DEFAULT_CELL: usize = 8;
 
 // Fixed normalisation constants (see the module docs for why they are not per-image).
 /// Scale of the chromatic opponent means (saturated colours reach about ±0.7).
@@ -57,8 +64,11 @@ const ORIENTATION_SCALE: f32 = 2.0;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct CellStatsConfig {
-    /// Cell side in pixels (one feature vector per cell); at least 2.
-    pub cell: usize,
+    /// Cell side in pixels (one feature vector per cell); at least 2. Absent: derived from
+    /// the patch stage 2 shows the teacher, an [`CELLS_PER_PATCH`]-cell grid across it (8-px
+    /// cells for 64-ray patches, 4-px cells for 32-ray ones), or 8 px outside a run.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cell: Option<usize>,
     /// Side of the square window, centred on each cell, whose pixels make the cell's
     /// statistics; absent = the cell itself. A window larger than the cell gives a finer grid
     /// (like DINO's 14x14 on a 64x64 patch) without the noise of statistics over few pixels.
@@ -95,7 +105,7 @@ pub enum SaliencyScale {
 impl Default for CellStatsConfig {
     fn default() -> Self {
         CellStatsConfig {
-            cell: 8,
+            cell: None,
             window: None,
             orientation_bins: 8,
             colour_weight: 1.0,
@@ -118,11 +128,11 @@ impl CellStatsConfig {
         let invalid = |key: &str, reason: &str| {
             Err(BuildError::Invalid { kind: KIND.into(), key: key.into(), reason: reason.into() })
         };
-        if !(2..=4096).contains(&self.cell) {
+        if !(2..=4096).contains(&self.cell()) {
             return invalid("cell", "must be between 2 and 4096 pixels");
         }
         if let Some(window) = self.window {
-            if !(self.cell..=4096).contains(&window) {
+            if !(self.cell()..=4096).contains(&window) {
                 return invalid("window", "must be at least `cell` and at most 4096 pixels (or absent)");
             }
         }
@@ -147,6 +157,11 @@ impl CellStatsConfig {
         Ok(())
     }
 
+    /// The cell side: as set, or the size used outside a run.
+    pub fn cell(&self) -> usize {
+        self.cell.unwrap_or(DEFAULT_CELL)
+    }
+
     /// Number of feature channels: 3 + 3 + `orientation_bins` + 1 + 1.
     pub fn channels(&self) -> usize {
         8 + self.orientation_bins
@@ -158,6 +173,19 @@ impl FeatureExtractorConfig for CellStatsConfig {
     fn build(&self, _ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
         self.validate()?;
         Ok(Box::new(CellStats { config: self.clone() }))
+    }
+
+    fn derive_for(&mut self, patch: &PatchFacts) -> Vec<DerivedSetting> {
+        if self.cell.is_some() {
+            return Vec::new();
+        }
+        let cell = (patch.patch_size as usize / CELLS_PER_PATCH).max(2);
+        self.cell = Some(cell);
+        vec![DerivedSetting::new(
+            "extractor.cell",
+            cell,
+            format!("{CELLS_PER_PATCH} cells across the {}-ray patch", patch.patch_size),
+        )]
     }
 }
 
@@ -201,7 +229,7 @@ impl CellStats {
                 saliency: Some(vec![0.0]),
             };
         }
-        let cell = self.config.cell;
+        let cell = self.config.cell();
         // Floor division like a ViT's patch grid; smaller images get one cell over all of it.
         let (gh, gw) = ((h / cell).max(1), (w / cell).max(1));
         let (ch, cw) = (cell.min(h), cell.min(w));
@@ -311,7 +339,7 @@ impl FeatureExtractor for CellStats {
         format!(
             "{KIND}/v{VERSION} cell={} window={:?} orientation_bins={} colour_weight={} spread_weight={} \
              orientation_weight={} energy_weight={} saliency_weight={} saliency_scale={:?}",
-            c.cell,
+            c.cell(),
             c.window,
             c.orientation_bins,
             c.colour_weight,
@@ -472,7 +500,7 @@ mod tests {
         let broken = RgbImage { width: 10, height: 10, data: vec![0.5; 7] };
         assert_eq!(ex.extract_one(&broken).data, vec![0.0; 16]);
         // Other settings change the channel count.
-        let cfg = CellStatsConfig { cell: 4, orientation_bins: 12, ..Default::default() };
+        let cfg = CellStatsConfig { cell: Some(4), orientation_bins: 12, ..Default::default() };
         let map = CellStats::new(cfg).unwrap().extract_one(&img);
         assert_eq!((map.channels, map.height, map.width), (20, 5, 9));
     }
@@ -482,7 +510,7 @@ mod tests {
         // Left half red, right half blue, boundary at x = 32.
         let img = image(64, 32, |c, _| if c < 32 { [0.9, 0.1, 0.1] } else { [0.1, 0.1, 0.9] });
         let with = |window| {
-            let cfg = CellStatsConfig { cell: 4, window, saliency_weight: 0.0, ..Default::default() };
+            let cfg = CellStatsConfig { cell: Some(4), window, saliency_weight: 0.0, ..Default::default() };
             CellStats::new(cfg).unwrap().extract_one(&img)
         };
         let (plain, same, wide) = (with(None), with(Some(4)), with(Some(12)));
@@ -495,7 +523,7 @@ mod tests {
         assert!(red_green(&wide, 7) < red_green(&wide, 0) - 0.1);
         // Far from the boundary and at the image edge (window shifted inside) nothing changes.
         assert!((red_green(&wide, 0) - red_green(&plain, 0)).abs() < 1e-6);
-        let bad = CellStatsConfig { cell: 8, window: Some(4), ..Default::default() };
+        let bad = CellStatsConfig { cell: Some(8), window: Some(4), ..Default::default() };
         assert!(CellStats::new(bad).is_err(), "a window smaller than the cell is refused");
     }
 
@@ -647,7 +675,7 @@ mod tests {
             .map(|i| channel(&without, i / without.width, i % without.width))
             .fold(f32::NEG_INFINITY, f32::max);
         assert!(most < -1.0, "most salient background cell {most}");
-        assert!(without.saliency.as_ref().unwrap().iter().any(|&v| v == 1.0));
+        assert!(without.saliency.as_ref().unwrap().contains(&1.0));
         // Per image (the default), the object's cells are the most salient of their view.
         let per_image = extractor().extract_one(&scene(true, 5));
         assert!(channel(&per_image, 4, 5) > 1.5 && channel(&per_image, 0, 0) < -1.5);

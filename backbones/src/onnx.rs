@@ -30,7 +30,7 @@ use sos_core::image::RgbImage;
 use sos_core::plugin::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};
 use sos_core::registry::Registration;
 
-use crate::dino_vit::checkpoint::content_hash;
+use crate::checkpoint::content_hash;
 use crate::dino_vit::preprocess::{Preprocess, Resize, IMAGENET_MEAN, IMAGENET_STD};
 
 const KIND: &str = "onnx";

@@ -30,7 +30,7 @@ use crate::image_files::{check_images_for, find_with_stem, list_images, stem};
 use crate::pose::{self, Pose};
 use crate::tanks_temples::parse_c2w_opencv;
 use crate::text::{invalid, number, read_text};
-use crate::views::{check_aabb, checked_camera, extent_of, optional_mask, scene_name, Intrinsics};
+use crate::views::{NO_AABB, check_aabb, checked_camera, extent_of, optional_mask, scene_name, Intrinsics};
 
 /// Which BlendedMVS layout to read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -77,8 +77,23 @@ register_dataset!(
     BlendedMvsConfig,
     "blendedmvs",
     "BlendedMVS, original (blended_images/ + cams/) or NSVF (rgb/ + pose/ + bbox.txt) layout",
-    load_blendedmvs
+    load_blendedmvs,
+    derived_blendedmvs
 );
+
+/// The extent this adapter chose where the config gives no `aabb`.
+fn derived_blendedmvs(cfg: &BlendedMvsConfig, _root: &Path, scene: &sos_core::scene::Scene) -> Vec<sos_core::derived::DerivedSetting> {
+    match cfg.aabb {
+        Some(_) => Vec::new(),
+        None => {
+            let reason = match scene.extent {
+                sos_core::scene::SceneExtent::Bounded { .. } => "no `aabb`: the layout's bbox.txt",
+                _ => NO_AABB,
+            };
+            vec![crate::views::extent_setting(scene, reason)]
+        }
+    }
+}
 
 /// A parsed `<id>_cam.txt`.
 #[derive(Debug, Clone, PartialEq)]

@@ -16,9 +16,12 @@ use sos_core::image::RgbImage;
 use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, SceneExtent, View};
 
+use sos_core::derived::DerivedSetting;
+
 use crate::adapter::register_dataset;
 use crate::image_files::{find_image, find_with_stem, load_mask, stem};
 use crate::text::invalid;
+use crate::views::{camera_focus, check_aabb, extent_of, extent_setting};
 
 /// Configuration of the `blender` dataset (`[scene] kind = "blender"`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -32,11 +35,17 @@ pub struct BlenderConfig {
     pub downscale: u32,
     /// Split used for the held-out views: `"test"` (default) or `"val"`.
     pub test_split: String,
-    /// Scene bounds `[min, max]` (default `[[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]]`).
-    pub aabb: [Vec3; 2],
-    /// Distance from the cameras below which nothing is sampled (NeRF uses 2.0 for its
-    /// synthetic scenes).
-    pub near: f32,
+    /// Scene bounds `[min, max]`. Absent: derived from the capture. Cut-out images (an alpha
+    /// channel with a transparent background) give a cube around the point the cameras look
+    /// at that holds every view's opaque silhouette; opaque images give the unbounded extent
+    /// around that point that the COLMAP adapter uses, so the same capture trains alike in
+    /// either layout.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub aabb: Option<[Vec3; 2]>,
+    /// Distance from the cameras below which nothing is sampled. Absent: 0.9 x the nearest
+    /// training camera's distance to the derived box (cut-out images), else 0.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub near: Option<f32>,
 }
 
 impl Default for BlenderConfig {
@@ -46,8 +55,8 @@ impl Default for BlenderConfig {
             white_background: true,
             downscale: 1,
             test_split: "test".into(),
-            aabb: [[-1.5; 3], [1.5; 3]],
-            near: 2.0,
+            aabb: None,
+            near: None,
         }
     }
 }
@@ -56,8 +65,34 @@ register_dataset!(
     BlenderConfig,
     "blender",
     "NeRF-synthetic layout (transforms_{train,test}.json, RGBA on white)",
-    load_blender
+    load_blender,
+    derived_blender
 );
+
+/// A pixel counts as background when its alpha is below this.
+const OPAQUE_ALPHA: f32 = 0.5;
+/// A view is a cut-out when at least this fraction of its pixels is background.
+const CUT_OUT_FRACTION: f32 = 0.01;
+/// Margin of the derived box over the silhouettes' bound.
+const BOX_MARGIN: f32 = 1.2;
+/// `near` as a fraction of the nearest training camera's distance to the derived box.
+const NEAR_FRACTION: f32 = 0.9;
+
+/// What the adapter chose where the config left `aabb` or `near` unset.
+fn derived_blender(cfg: &BlenderConfig, _root: &Path, scene: &Scene) -> Vec<DerivedSetting> {
+    let mut out = Vec::new();
+    if cfg.aabb.is_none() {
+        let reason = match scene.extent {
+            SceneExtent::Bounded { .. } => "no `aabb`; cut-out images: a cube holding every view's silhouette",
+            _ => "no `aabb`; opaque images: unbounded around the point the cameras look at",
+        };
+        out.push(extent_setting(scene, reason));
+    }
+    if cfg.near.is_none() {
+        out.push(DerivedSetting::new("scene.near", format!("{:.3}", scene.near), "no `near`; from the derived extent"));
+    }
+    out
+}
 
 #[derive(Deserialize)]
 struct Transforms {
@@ -158,8 +193,9 @@ fn read_split(root: &Path, split: &str) -> Result<(f64, Vec<FrameFile>), Dataset
     Ok((t.camera_angle_x, frames))
 }
 
-/// Reads an image, compositing its alpha (if any) on `background`.
-fn load_composited(path: &Path, background: f32) -> Result<RgbImage, DatasetError> {
+/// Reads an image, compositing its alpha (if any) on `background`; also returns the alpha
+/// channel (all ones for images without one).
+fn load_composited(path: &Path, background: f32) -> Result<(RgbImage, Vec<f32>), DatasetError> {
     let img = image::open(path).map_err(|e| {
         invalid(
             path,
@@ -178,11 +214,73 @@ fn load_composited(path: &Path, background: f32) -> Result<RgbImage, DatasetErro
             [0, 1, 2].map(|k| p.0[k] * a + background * (1.0 - a))
         })
         .collect();
-    Ok(RgbImage {
-        width: w as usize,
-        height: h as usize,
-        data,
-    })
+    let alpha = rgba.pixels().map(|p| p.0[3]).collect();
+    Ok((RgbImage { width: w as usize, height: h as usize, data }, alpha))
+}
+
+/// How a view's opaque pixels lie around the direction from its camera to `focus`.
+struct Silhouette {
+    /// At least [`CUT_OUT_FRACTION`] of the pixels are background.
+    cut_out: bool,
+    /// Largest angle (radians) between that direction and an opaque pixel's ray; `None` when
+    /// no pixel is opaque.
+    angle: Option<f32>,
+}
+
+fn silhouette(camera: &Camera, alpha: &[f32], focus: Vec3) -> Silhouette {
+    let to_focus = normalize(sub(focus, camera.origin()));
+    let width = camera.width as usize;
+    let mut background = 0usize;
+    let mut min_cos = f32::INFINITY;
+    for (i, &a) in alpha.iter().enumerate() {
+        if a < OPAQUE_ALPHA {
+            background += 1;
+            continue;
+        }
+        let (x, y) = ((i % width) as f32 + 0.5, (i / width) as f32 + 0.5);
+        min_cos = min_cos.min(dot(normalize(camera.direction(x, y)), to_focus));
+    }
+    Silhouette {
+        cut_out: background as f32 >= CUT_OUT_FRACTION * alpha.len() as f32,
+        angle: min_cos.is_finite().then(|| min_cos.clamp(-1.0, 1.0).acos()),
+    }
+}
+
+/// The derived extent and `near`: a cube around `focus` holding every cut-out view's
+/// silhouette cone where the views are cut-outs, else the unbounded extent of opaque layouts.
+fn derived_extent(
+    views: &[View],
+    train: &[usize],
+    silhouettes: &[Silhouette],
+    focus: Vec3,
+) -> (SceneExtent, f32) {
+    let cut_out = train.iter().any(|&i| silhouettes[i].cut_out);
+    // Each silhouette cone bounds the object; at the focus distance its radius is d tan θ.
+    let half = train
+        .iter()
+        .filter_map(|&i| {
+            let angle = silhouettes[i].angle?.min(1.4);
+            Some(norm(sub(views[i].camera.origin(), focus)) * angle.tan())
+        })
+        .fold(0.0f32, f32::max);
+    if !(cut_out && half > 0.0 && half.is_finite()) {
+        return (extent_of(views, train, None), 0.0);
+    }
+    let half = BOX_MARGIN * half;
+    let (min, max) = (focus.map(|v| v - half), focus.map(|v| v + half));
+    let nearest = train
+        .iter()
+        .map(|&i| {
+            let o = views[i].camera.origin();
+            let outside = [0, 1, 2].map(|k| (min[k] - o[k]).max(o[k] - max[k]).max(0.0));
+            norm(outside)
+        })
+        .fold(f32::INFINITY, f32::min);
+    (SceneExtent::Bounded { min, max }, NEAR_FRACTION * nearest.min(1e30))
+}
+
+fn norm(v: Vec3) -> f32 {
+    dot(v, v).sqrt()
 }
 
 /// Loads a Blender-layout scene from folder `root` (the config's `path` already resolved).
@@ -199,11 +297,11 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
             ),
         ));
     }
-    if !(0..3).all(|k| cfg.aabb[0][k] < cfg.aabb[1][k]) {
-        return Err(invalid(
-            root,
-            "config key `aabb`: min must be below max on every axis",
-        ));
+    check_aabb(root, cfg.aabb)?;
+    if let Some(near) = cfg.near {
+        if !(near >= 0.0 && near.is_finite()) {
+            return Err(invalid(root, "config key `near` must be zero or positive"));
+        }
     }
     if !root.is_dir() {
         return Err(DatasetError::Missing {
@@ -225,10 +323,27 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
         .chain(test_frames.into_iter().map(|f| (angle_test, f)))
         .collect();
     let mask_root = root.join("masks");
-    let views: Vec<View> = all
+    let poses: Vec<Camera> = all.iter().map(|(_, f)| Camera { width: 1, height: 1, fx: 1.0, fy: 1.0, cx: 0.5, cy: 0.5, cam_to_world: f.cam_to_world }).collect();
+    let focus = camera_focus(&poses[..n_train].iter().collect::<Vec<_>>()).0;
+    let loaded: Vec<(View, Silhouette)> = all
         .par_iter()
         .map(|(angle, f)| {
-            let mut image = load_composited(&f.image, background)?;
+            let (mut image, alpha) = load_composited(&f.image, background)?;
+            let full = {
+                let (w, h) = (image.width, image.height);
+                let focal = 0.5 * w as f64 / (0.5 * angle).tan();
+                Camera {
+                    width: w as u32,
+                    height: h as u32,
+                    fx: focal as f32,
+                    fy: focal as f32,
+                    cx: w as f32 / 2.0,
+                    cy: h as f32 / 2.0,
+                    cam_to_world: f.cam_to_world,
+                }
+            };
+            let outline = silhouette(&full, &alpha, focus);
+            drop(alpha);
             let d = cfg.downscale as usize;
             if d > 1 {
                 image = image.resized((image.width / d).max(1), (image.height / d).max(1));
@@ -253,14 +368,10 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
                 Some(p) => Some(load_mask(&p, w, h)?),
                 None => None,
             };
-            Ok(View {
-                name: f.rel.replace(['/', '\\'], "_"),
-                camera,
-                image,
-                mask,
-            })
+            Ok((View { name: f.rel.replace(['/', '\\'], "_"), camera, image, mask }, outline))
         })
         .collect::<Result<_, DatasetError>>()?;
+    let (views, silhouettes): (Vec<View>, Vec<Silhouette>) = loaded.into_iter().unzip();
     if mask_root.is_dir() && views.iter().all(|v| v.mask.is_none()) {
         return Err(invalid(
             &mask_root,
@@ -272,19 +383,19 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
         .and_then(|n| n.to_str())
         .unwrap_or("blender")
         .to_string();
-    let centre = [0, 1, 2].map(|k| 0.5 * (cfg.aabb[0][k] + cfg.aabb[1][k]));
-    let train_cams: Vec<&Camera> = views[..n_train].iter().map(|v| &v.camera).collect();
-    let render_path = orbit_path(&train_cams, centre, 40);
+    let train: Vec<usize> = (0..n_train).collect();
+    let (extent, derived_near) = match cfg.aabb {
+        Some([min, max]) => (SceneExtent::Bounded { min, max }, 0.0),
+        None => derived_extent(&views, &train, &silhouettes, focus),
+    };
+    let render_path = orbit_path_around(&views, &train, &extent);
     Ok(Scene {
         name,
-        train: (0..n_train).collect(),
+        train,
         test: (n_train..views.len()).collect(),
         views,
-        extent: SceneExtent::Bounded {
-            min: cfg.aabb[0],
-            max: cfg.aabb[1],
-        },
-        near: cfg.near,
+        extent,
+        near: cfg.near.unwrap_or(derived_near),
         render_path,
     })
 }
@@ -348,7 +459,7 @@ fn scale3(v: Vec3, s: f32) -> Vec3 {
 mod tests {
     use super::*;
     use crate::export::write_blender;
-    use crate::synthetic::{generate, Rig, SyntheticConfig, ROOM_MAX, ROOM_MIN};
+    use crate::synthetic::{generate, Rig, SyntheticConfig, OBJECT_CENTRE, OBJECT_RADIUS, ROOM_MAX, ROOM_MIN};
 
     fn temp_dir(name: &str) -> PathBuf {
         let dir = std::env::temp_dir().join(format!("sos-blender-{}-{name}", std::process::id()));
@@ -360,8 +471,8 @@ mod tests {
     fn room_cfg(dir: &Path) -> BlenderConfig {
         BlenderConfig {
             path: dir.to_path_buf(),
-            aabb: [ROOM_MIN, ROOM_MAX],
-            near: 0.0,
+            aabb: Some([ROOM_MIN, ROOM_MAX]),
+            near: Some(0.0),
             ..Default::default()
         }
     }
@@ -564,6 +675,71 @@ mod tests {
             err.contains("transforms_test.json") && err.contains("missing"),
             "{err}"
         );
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    fn small_scene(rig: Rig) -> Scene {
+        generate(&SyntheticConfig { rig, width: 96, height: 72, views: 12, ..Default::default() })
+    }
+
+    #[test]
+    fn opaque_images_get_the_extent_of_the_colmap_layout() {
+        let scene = small_scene(Rig::Unbounded);
+        let dir = temp_dir("opaque");
+        write_blender(&scene, &dir).unwrap();
+        let cfg = BlenderConfig { path: dir.clone(), ..Default::default() };
+        let loaded = load_blender(&cfg, &dir).unwrap();
+        assert_eq!(loaded.extent, extent_of(&loaded.views, &loaded.train, None));
+        assert!(matches!(loaded.extent, SceneExtent::Unbounded { .. }));
+        assert_eq!(loaded.near, 0.0);
+        let notes = derived_blender(&cfg, &dir, &loaded);
+        assert!(notes.iter().any(|d| d.key == "scene.extent" && d.reason.contains("opaque")), "{notes:?}");
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn cut_out_images_get_a_box_holding_the_object() {
+        let scene = small_scene(Rig::ObjectCentric);
+        let dir = temp_dir("cutout");
+        write_blender(&scene, &dir).unwrap();
+        std::fs::remove_dir_all(dir.join("masks")).unwrap();
+        // Re-save every image with the object opaque and everything else transparent.
+        let order: Vec<usize> = scene.train.iter().chain(&scene.test).copied().collect();
+        let loaded_plain = load_blender(&BlenderConfig { path: dir.clone(), ..Default::default() }, &dir).unwrap();
+        for (&i, l) in order.iter().zip(&loaded_plain.views) {
+            let v = &scene.views[i];
+            let mask = v.mask.as_ref().unwrap();
+            let path = find_image(&dir, &l.name.replacen('_', "/", 1)).unwrap();
+            let img = image::RgbaImage::from_fn(v.image.width as u32, v.image.height as u32, |x, y| {
+                let [r, g, b] = v.image.pixel(x as usize, y as usize).map(|c| (c * 255.0).round() as u8);
+                let a = if mask.data[y as usize * v.image.width + x as usize] > 0.5 { 255 } else { 0 };
+                image::Rgba([r, g, b, a])
+            });
+            img.save(&path).unwrap();
+        }
+        let cfg = BlenderConfig { path: dir.clone(), ..Default::default() };
+        let loaded = load_blender(&cfg, &dir).unwrap();
+        let SceneExtent::Bounded { min, max } = loaded.extent else {
+            panic!("cut-out images should give a box, got {:?}", loaded.extent)
+        };
+        // The object (sphere and pedestal down to the floor) lies inside, and the box is far
+        // smaller than the room the cameras stand in.
+        for k in 0..3 {
+            let (lo, hi) = if k == 1 { (0.0, OBJECT_CENTRE[1] + OBJECT_RADIUS) } else {
+                (OBJECT_CENTRE[k] - OBJECT_RADIUS, OBJECT_CENTRE[k] + OBJECT_RADIUS)
+            };
+            assert!(min[k] <= lo && max[k] >= hi, "axis {k}: box {min:?}..{max:?}");
+        }
+        let volume = |a: Vec3, b: Vec3| (0..3).map(|k| b[k] - a[k]).product::<f32>();
+        assert!(volume(min, max) < 0.1 * volume(ROOM_MIN, ROOM_MAX), "box {min:?}..{max:?}");
+        assert!(loaded.near > 0.0, "near {}", loaded.near);
+        for &i in &loaded.train {
+            let o = loaded.views[i].camera.origin();
+            assert!((0..3).any(|k| o[k] < min[k] || o[k] > max[k]), "camera {i} inside the box");
+        }
+        let notes = derived_blender(&cfg, &dir, &loaded);
+        assert!(notes.iter().any(|d| d.key == "scene.extent" && d.reason.contains("cut-out")), "{notes:?}");
+        assert!(notes.iter().any(|d| d.key == "scene.near"), "{notes:?}");
         std::fs::remove_dir_all(dir).ok();
     }
 }

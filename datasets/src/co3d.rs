@@ -30,7 +30,7 @@ use sos_core::scene::{Scene, View};
 use crate::adapter::{hold_out_views, orbit_scene, register_dataset};
 use crate::pose::{self, Pose, M3, V3};
 use crate::text::{invalid, read_bytes};
-use crate::views::{
+use crate::views::{NO_AABB, 
     check_aabb, checked_camera, extent_of, load_image_sized, optional_mask, Intrinsics,
 };
 
@@ -67,8 +67,17 @@ register_dataset!(
     Co3dConfig,
     "co3d",
     "one CO3Dv2 sequence (frame/sequence_annotations.jgz, PyTorch3D NDC cameras, soft masks)",
-    load_co3d
+    load_co3d,
+    derived_co3d
 );
+
+/// The extent this adapter chose where the config gives no `aabb`.
+fn derived_co3d(cfg: &Co3dConfig, _root: &Path, scene: &sos_core::scene::Scene) -> Vec<sos_core::derived::DerivedSetting> {
+    match cfg.aabb {
+        Some(_) => Vec::new(),
+        None => vec![crate::views::extent_setting(scene, NO_AABB)],
+    }
+}
 
 /// `image` of a frame annotation.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -36,7 +36,7 @@ use crate::adapter::{hold_out_views, orbit_scene, register_dataset};
 use crate::image_files::find_with_stem;
 use crate::pose::{self, Pose};
 use crate::text::{invalid, number, read_bytes, read_text, Reader};
-use crate::views::{check_aabb, checked_camera, extent_of, optional_mask, scene_name, Intrinsics};
+use crate::views::{NO_AABB, check_aabb, checked_camera, extent_of, optional_mask, scene_name, Intrinsics};
 
 /// Configuration of the `colmap` dataset (`[scene] kind = "colmap"`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -77,8 +77,17 @@ register_dataset!(
     ColmapConfig,
     "colmap",
     "COLMAP sparse model (cameras/images .bin or .txt) with its images/ folder",
-    load_colmap
+    load_colmap,
+    derived_colmap
 );
+
+/// The extent this adapter chose where the config gives no `aabb`.
+fn derived_colmap(cfg: &ColmapConfig, _root: &Path, scene: &sos_core::scene::Scene) -> Vec<sos_core::derived::DerivedSetting> {
+    match cfg.aabb {
+        Some(_) => Vec::new(),
+        None => vec![crate::views::extent_setting(scene, NO_AABB)],
+    }
+}
 
 /// COLMAP camera model: name, parameter count, whether the first parameter is a single focal
 /// length, whether it is a fisheye projection.

@@ -97,7 +97,7 @@ impl Format {
     }
 
     /// Opens a layout written to `dir` with the loader's defaults, except that poses are kept
-    /// in the written frame (no LLFF recentring or scaling, no NeRF++ normalisation) and, when
+    /// in the written frame (no LLFF recentring, scaling or spherify, no NeRF++ normalisation) and, when
     /// given, `aabb` bounds the scene where the loader takes one.
     pub fn open_raw(self, dir: &Path, aabb: Option<[Vec3; 2]>) -> Result<Scene, DatasetError> {
         let root = self.scene_dir(dir);
@@ -106,22 +106,16 @@ impl Format {
             Format::Llff => load_llff(
                 &LlffConfig {
                     path,
-                    factor: 1,
+                    factor: Some(1),
                     recenter: false,
                     bd_factor: 0.0,
+                    spherify: Some(false),
                     ..Default::default()
                 },
                 &root,
             ),
             Format::Blender => {
-                let mut cfg = BlenderConfig {
-                    path,
-                    near: 0.0,
-                    ..Default::default()
-                };
-                if let Some(b) = aabb {
-                    cfg.aabb = b;
-                }
+                let cfg = BlenderConfig { path, aabb, near: Some(0.0), ..Default::default() };
                 load_blender(&cfg, &root)
             }
             Format::ColmapBin | Format::ColmapTxt => load_colmap(

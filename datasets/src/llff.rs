@@ -22,6 +22,7 @@ use std::path::{Path, PathBuf};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sos_core::camera::CameraConvention;
+use sos_core::derived::DerivedSetting;
 use sos_core::image::RgbImage;
 use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, SceneExtent, View};
@@ -38,8 +39,11 @@ use crate::text::invalid;
 pub struct LlffConfig {
     /// Scene folder (holding `poses_bounds.npy`), relative to the config file's folder.
     pub path: PathBuf,
-    /// Downscale factor: images come from `images_{factor}/` (default 8).
-    pub factor: u32,
+    /// Downscale factor: images come from `images_{factor}/` (or `images/`, downscaled).
+    /// Absent: the image folder whose width is nearest [`WORKING_WIDTH`] (`images_8/` of
+    /// LLFF's 4032-px captures, as the reference; see [`working_factor`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub factor: Option<u32>,
     /// Target width instead of `factor`: images come from `images_{width}x{height}/`, or from
     /// `images/` resized (height keeps the aspect ratio, rounded down). Default: unset.
     pub width: Option<u32>,
@@ -49,8 +53,12 @@ pub struct LlffConfig {
     pub recenter: bool,
     /// Scale so the nearest bound becomes `1 / bd_factor` (default 0.75); 0 disables scaling.
     pub bd_factor: f64,
-    /// Spherical pose normalisation of 360° captures, as the reference (default false).
-    pub spherify: bool,
+    /// Spherical pose normalisation of 360° captures, as the reference. Absent: chosen from
+    /// the cameras, on when their viewing directions spread like a capture around the scene
+    /// (mean unit viewing direction shorter than [`SPHERIFY_BELOW`]), off for forward-facing
+    /// captures.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub spherify: Option<bool>,
     /// Number of cameras on the spiral render path (default 120).
     pub render_path_views: usize,
 }
@@ -59,12 +67,12 @@ impl Default for LlffConfig {
     fn default() -> Self {
         LlffConfig {
             path: PathBuf::new(),
-            factor: 8,
+            factor: None,
             width: None,
             hold_out_every: 8,
             recenter: true,
             bd_factor: 0.75,
-            spherify: false,
+            spherify: None,
             render_path_views: 120,
         }
     }
@@ -74,7 +82,8 @@ register_dataset!(
     LlffConfig,
     "llff",
     "forward-facing LLFF captures (poses_bounds.npy + images_N/), as NeRF's load_llff.py",
-    load_llff
+    load_llff,
+    derived_llff
 );
 
 /// One row of `poses_bounds.npy`, validated.
@@ -144,6 +153,34 @@ struct ImageSource {
     factor: f64,
 }
 
+/// The image width an unset `factor` aims at: the reference's LLFF working size (4032 / 8).
+pub const WORKING_WIDTH: f64 = 504.0;
+
+/// The downscale factor of an unset `factor`: among the folders present (`images_N/`, and
+/// `images/` as factor 1) the one whose width is nearest [`WORKING_WIDTH`], so that images
+/// already downscaled are used as they are; with none, the factor that would bring the
+/// full-resolution width nearest it.
+pub fn working_factor(root: &Path, full_width: f64) -> u32 {
+    let usable = full_width.is_finite() && full_width > 0.0;
+    let distance = |f: u32| if usable { (full_width / f as f64 - WORKING_WIDTH).abs() } else { f as f64 };
+    let mut present: Vec<u32> = std::fs::read_dir(root)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter(|e| e.path().is_dir())
+        .filter_map(|e| e.file_name().to_str()?.strip_prefix("images_")?.parse::<u32>().ok())
+        .filter(|&f| f >= 1)
+        .collect();
+    if root.join("images").is_dir() {
+        present.push(1);
+    }
+    match present.into_iter().min_by(|&a, &b| distance(a).total_cmp(&distance(b)).then(b.cmp(&a))) {
+        Some(f) => f,
+        None if usable => (full_width / WORKING_WIDTH).round().clamp(1.0, 64.0) as u32,
+        None => 1,
+    }
+}
+
 fn image_source(cfg: &LlffConfig, root: &Path, hwf: [f64; 3]) -> Result<ImageSource, DatasetError> {
     let full = root.join("images");
     let (h_full, w_full) = (hwf[0], hwf[1]);
@@ -166,15 +203,12 @@ fn image_source(cfg: &LlffConfig, root: &Path, hwf: [f64; 3]) -> Result<ImageSou
             )
         }
         None => {
-            if cfg.factor == 0 {
+            let factor = cfg.factor.unwrap_or_else(|| working_factor(root, w_full));
+            if factor == 0 {
                 return Err(invalid(root, "config key `factor` must be ≥ 1"));
             }
-            let f = cfg.factor as f64;
-            let dir = if cfg.factor == 1 {
-                full.clone()
-            } else {
-                root.join(format!("images_{}", cfg.factor))
-            };
+            let f = factor as f64;
+            let dir = if factor == 1 { full.clone() } else { root.join(format!("images_{factor}")) };
             let (w, h) = (
                 ((w_full / f).round() as usize).max(1),
                 ((h_full / f).round() as usize).max(1),
@@ -253,7 +287,7 @@ pub fn read_llff_geometry(cfg: &LlffConfig, npy_path: &Path) -> Result<LlffGeome
     }
     let mut bounds = [min_bound * sc, max_bound * sc];
     let mut sphere_path = None;
-    if cfg.spherify {
+    if cfg.spherify.unwrap_or_else(|| mean_viewing_direction(&poses) < SPHERIFY_BELOW) {
         let s = pose::spherify(&poses, cfg.render_path_views).ok_or_else(|| {
             invalid(
                 npy_path,
@@ -271,6 +305,49 @@ pub fn read_llff_geometry(cfg: &LlffConfig, npy_path: &Path) -> Result<LlffGeome
         bounds,
         sphere_path,
     })
+}
+
+/// With `spherify` unset, captures whose mean unit viewing direction is shorter than this are
+/// spherified: forward-facing captures keep about 1 (flower: 0.99), cameras around a scene
+/// far less (0 for a full circle); 0.7 is an angular spread of about 45° around the mean.
+pub const SPHERIFY_BELOW: f64 = 0.7;
+
+/// Length of the mean of the cameras' unit viewing directions (pose column 2 is "back").
+fn mean_viewing_direction(poses: &[Pose]) -> f64 {
+    let mut sum = [0.0f64; 3];
+    for p in poses {
+        let n = (0..3).map(|k| p[k][2] * p[k][2]).sum::<f64>().sqrt().max(1e-12);
+        (0..3).for_each(|k| sum[k] += p[k][2] / n);
+    }
+    (0..3).map(|k| sum[k] * sum[k]).sum::<f64>().sqrt() / poses.len().max(1) as f64
+}
+
+/// What the adapter chose where the config left `spherify` unset.
+fn derived_llff(cfg: &LlffConfig, root: &Path, scene: &Scene) -> Vec<DerivedSetting> {
+    let mut out = Vec::new();
+    if cfg.factor.is_none() && cfg.width.is_none() {
+        let full_width = read_npy(&root.join("poses_bounds.npy"))
+            .ok()
+            .and_then(|a| a.data.get(..15).map(|row| row[9]))
+            .unwrap_or(f64::NAN);
+        out.push(DerivedSetting::new(
+            "scene.factor",
+            working_factor(root, full_width),
+            format!("no `factor`: of the image folders, the one nearest {WORKING_WIDTH} px wide ({full_width} px at full size)"),
+        ));
+    }
+    if cfg.spherify.is_some() {
+        return out;
+    }
+    let spherified = !matches!(scene.extent, SceneExtent::ForwardFacing { .. });
+    let reason = if spherified {
+        "no `spherify`: the cameras look in directions spread around the scene"
+    } else {
+        "no `spherify`: the cameras look the same way (a forward-facing capture)"
+    };
+    out.push(DerivedSetting::new("scene.spherify", spherified, reason));
+    out.push(crate::views::extent_setting(scene, "from poses_bounds.npy's depth bounds"));
+    out
 }
 
 /// Loads an LLFF scene from folder `root` (the config's `path` already resolved).
@@ -580,9 +657,11 @@ mod tests {
             .chunks(17)
             .map(|r| r[15])
             .fold(f64::INFINITY, f64::min);
+        // Recentring and scaling alone (an object-centric capture would be spherified).
         let loaded = load_llff(
             &LlffConfig {
-                factor: 4,
+                factor: Some(4),
+                spherify: Some(false),
                 ..cfg(&dir)
             },
             &dir,
@@ -594,9 +673,10 @@ mod tests {
         // Without recentring and scaling the poses come back unchanged.
         let raw = load_llff(
             &LlffConfig {
-                factor: 4,
+                factor: Some(4),
                 recenter: false,
                 bd_factor: 0.0,
+                spherify: Some(false),
                 ..cfg(&dir)
             },
             &dir,
@@ -624,7 +704,7 @@ mod tests {
         // images_2 is missing: images/ is box-filtered to half size, but masks/ is full size.
         let err = load_llff(
             &LlffConfig {
-                factor: 2,
+                factor: Some(2),
                 ..cfg(&dir)
             },
             &dir,
@@ -638,7 +718,7 @@ mod tests {
         std::fs::remove_dir_all(dir.join("masks")).unwrap();
         let half = load_llff(
             &LlffConfig {
-                factor: 2,
+                factor: Some(2),
                 ..cfg(&dir)
             },
             &dir,
@@ -717,7 +797,7 @@ mod tests {
         std::fs::write(&npy_path, &good).unwrap();
 
         let err = open(&LlffConfig {
-            factor: 3,
+            factor: Some(3),
             ..cfg(&dir)
         });
         assert!(err.contains("images_3") && err.contains("missing"), "{err}");
@@ -742,7 +822,7 @@ mod tests {
             .to_string();
         assert!(err.contains("nowhere") && err.contains("missing"), "{err}");
         let err = open(&LlffConfig {
-            spherify: true,
+            spherify: Some(true),
             ..cfg(&dir)
         });
         assert!(err.contains("spherify"), "{err}");

@@ -7,7 +7,8 @@ use std::path::Path;
 use sos_core::camera::{Camera, Vec3};
 use sos_core::image::{GrayImage, RgbImage};
 use sos_core::plugin::dataset::DatasetError;
-use sos_core::scene::{solve3, SceneExtent, View};
+use sos_core::derived::DerivedSetting;
+use sos_core::scene::{solve3, Scene, SceneExtent, View};
 
 use crate::image_files::load_mask;
 use crate::pose::{self, Pose};
@@ -129,19 +130,26 @@ pub fn scene_name(root: &Path, fallback: &str) -> String {
         .to_string()
 }
 
-/// The extent of layouts that store no scene bounds (COLMAP, BlendedMVS, CO3D): the box `aabb`
-/// when given, else `Unbounded` around the point the training cameras look at (least-squares
-/// intersection of their viewing axes; their mean centre when the axes are parallel), radius
-/// half the median camera distance to it.
+/// The extent of layouts that store no scene bounds (COLMAP, BlendedMVS, CO3D, opaque Blender
+/// captures): the box `aabb` when given, else `Unbounded` around the point the training
+/// cameras look at, radius half the median camera distance to it (see [`camera_focus`]).
 pub fn extent_of(views: &[View], train: &[usize], aabb: Option<[Vec3; 2]>) -> SceneExtent {
     if let Some([min, max]) = aabb {
         return SceneExtent::Bounded { min, max };
     }
     let cams: Vec<&Camera> = train.iter().map(|&i| &views[i].camera).collect();
+    let (center, median) = camera_focus(&cams);
+    let radius = if median > 1e-6 { 0.5 * median } else { 1.0 };
+    SceneExtent::Unbounded { center, radius }
+}
+
+/// The point the cameras look at (least-squares intersection of their viewing axes; their
+/// mean centre when the axes are parallel) and the median camera distance to it.
+pub fn camera_focus(cams: &[&Camera]) -> (Vec3, f32) {
     let mut a = [[0.0f64; 3]; 3];
     let mut b = [0.0f64; 3];
     let mut mean = [0.0f64; 3];
-    for cam in &cams {
+    for cam in cams {
         let (o, d) = (cam.origin(), cam.forward());
         for r in 0..3 {
             mean[r] += o[r] as f64 / cams.len() as f64;
@@ -158,19 +166,20 @@ pub fn extent_of(views: &[View], train: &[usize], aabb: Option<[Vec3; 2]>) -> Sc
         .iter()
         .map(|c| {
             let o = c.origin();
-            (0..3)
-                .map(|k| (o[k] as f64 - center[k]).powi(2))
-                .sum::<f64>()
-                .sqrt()
+            (0..3).map(|k| (o[k] as f64 - center[k]).powi(2)).sum::<f64>().sqrt()
         })
         .collect();
     dists.sort_by(f64::total_cmp);
-    let median = dists.get(dists.len() / 2).copied().unwrap_or(1.0);
-    let radius = if median > 1e-6 { 0.5 * median } else { 1.0 };
-    SceneExtent::Unbounded {
-        center: center.map(|v| v as f32),
-        radius: radius as f32,
-    }
+    let median = dists.get(dists.len() / 2).copied().unwrap_or(0.0);
+    (center.map(|v| v as f32), median as f32)
+}
+
+/// Why layouts without stored bounds get the unbounded extent of [`extent_of`].
+pub const NO_AABB: &str = "no `aabb`: unbounded around the point the training cameras look at";
+
+/// The derived-setting line of an adapter that chose the extent itself.
+pub fn extent_setting(scene: &Scene, reason: &str) -> DerivedSetting {
+    DerivedSetting::new("scene.extent", scene.extent, reason)
 }
 
 /// Checks a user-given box.

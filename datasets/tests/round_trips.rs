@@ -9,7 +9,7 @@ use sos_core::render::rays::RayBatch;
 use sos_core::scene::{Scene, SceneExtent};
 use sos_datasets::co3d::{read_jgz, write_jgz, FrameAnnotation, SequenceAnnotation};
 use sos_datasets::layouts::{Format, CO3D_CATEGORY, CO3D_SEQUENCE};
-use sos_datasets::synthetic::{generate, Rig, SyntheticConfig, ROOM_MAX, ROOM_MIN};
+use sos_datasets::synthetic::{generate, Rig, SyntheticConfig, OBJECT_CENTRE, OBJECT_RADIUS, ROOM_MAX, ROOM_MIN};
 use sos_datasets::{
     load_co3d, load_colmap, load_llff, load_tanks_temples, Co3dConfig, ColmapConfig, LlffConfig,
     TanksTemplesConfig,
@@ -467,14 +467,31 @@ fn co3d_soft_masks_are_thresholded_at_one_half() {
 }
 
 #[test]
+fn llff_spherify_is_chosen_from_the_camera_layout() {
+    for (rig, spherified) in [(Rig::ObjectCentric, true), (Rig::ForwardFacing, false)] {
+        let s = scene(rig);
+        let dir = temp_dir(&format!("auto-sph-{rig:?}"));
+        Format::Llff.write(&s, &dir).unwrap();
+        let cfg = LlffConfig { path: dir.clone(), factor: Some(1), ..Default::default() };
+        let loaded = load_llff(&cfg, &dir).unwrap();
+        let forward = matches!(loaded.extent, SceneExtent::ForwardFacing { .. });
+        assert_eq!(!forward, spherified, "{rig:?}: {:?}", loaded.extent);
+        let notes = sos_core::plugin::DatasetConfig::derived(&cfg, Path::new(""), &loaded);
+        let note = notes.iter().find(|d| d.key == "scene.spherify").expect("a spherify note");
+        assert_eq!(note.value, spherified.to_string(), "{rig:?}");
+        std::fs::remove_dir_all(dir).ok();
+    }
+}
+
+#[test]
 fn llff_spherify_centres_a_360_capture() {
     let s = scene(Rig::ObjectCentric);
     let dir = temp_dir("sph");
     Format::Llff.write(&s, &dir).unwrap();
     let cfg = LlffConfig {
         path: dir.clone(),
-        factor: 1,
-        spherify: true,
+        factor: Some(1),
+        spherify: Some(true),
         ..Default::default()
     };
     let loaded = load_llff(&cfg, &dir).unwrap();
@@ -601,16 +618,23 @@ fn assert_same_views_up_to_frame(original: &Scene, loaded: &Scene, f: Format) {
                 "{f:?}"
             );
         }
+        // The configs set no bounds: NSVF's bbox.txt holds the room, the other layouts get
+        // the unbounded extent around the cameras' focus, whose foreground sphere holds the
+        // object.
         _ => {
             assert_same_views(original, loaded, f.name());
-            let SceneExtent::Bounded { min, max } = loaded.extent else {
-                panic!("{f:?}: {:?}", loaded.extent)
-            };
-            assert!(
-                (0..3).all(|k| min[k] < ROOM_MIN[k] && max[k] > ROOM_MAX[k]),
-                "{f:?}: {min:?} {max:?}"
-            );
-            assert!(loaded.near > 0.0, "{f:?}: near {}", loaded.near);
+            match loaded.extent {
+                SceneExtent::Bounded { min, max } => assert!(
+                    (0..3).all(|k| min[k] < ROOM_MIN[k] && max[k] > ROOM_MAX[k]),
+                    "{f:?}: {min:?} {max:?}"
+                ),
+                SceneExtent::Unbounded { center, radius } => {
+                    let off = (0..3).map(|k| (center[k] - OBJECT_CENTRE[k]).powi(2)).sum::<f32>().sqrt();
+                    assert!(off + OBJECT_RADIUS < radius, "{f:?}: centre {center:?} radius {radius}");
+                }
+                ref other => panic!("{f:?}: {other:?}"),
+            }
+            assert!(loaded.near >= 0.0, "{f:?}: near {}", loaded.near);
         }
     }
 }

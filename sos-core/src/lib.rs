@@ -4,6 +4,7 @@
 
 pub mod camera;
 pub mod config;
+pub mod derived;
 pub mod encoding;
 pub mod error;
 pub mod image;

@@ -70,6 +70,21 @@ impl SceneExtent {
     }
 }
 
+impl std::fmt::Display for SceneExtent {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let v = |p: Vec3| format!("[{:.3}, {:.3}, {:.3}]", p[0], p[1], p[2]);
+        match *self {
+            SceneExtent::Bounded { min, max } => write!(f, "bounded box {} to {}", v(min), v(max)),
+            SceneExtent::ForwardFacing { near, far, .. } => {
+                write!(f, "forward-facing, content depths {near:.3} to {far:.3} (NDC)")
+            }
+            SceneExtent::Unbounded { center, radius } => {
+                write!(f, "unbounded, foreground sphere at {} of radius {radius:.3}", v(center))
+            }
+        }
+    }
+}
+
 /// A scene ready for training.
 #[derive(Debug, Clone)]
 pub struct Scene {

@@ -1,8 +1,8 @@
 //! `dino-vit`: the reference's 2D teacher, a DINO ViT (S/16, S/8, B/16 or B/8) run natively on
 //! the CPU from the official checkpoint files.
 //!
-//! - [`checkpoint`] reads `.pth` (PyTorch's zip + pickle format, via [`pth`], [`zip`] and
-//!   [`pickle`]) and `.safetensors` files into a [`checkpoint::StateDict`];
+//! - [`crate::checkpoint`] reads the `.pth` (PyTorch's zip + pickle format) and
+//!   `.safetensors` files into a [`StateDict`];
 //! - [`model`] is the forward pass, [`preprocess`] the reference's input pipeline,
 //!   [`interpolate`] DINO's position-embedding interpolation;
 //! - [`onnx_export`] writes the same network as an ONNX graph (for the `onnx` extractor and
@@ -13,21 +13,15 @@
 //! block's [CLS] attention over the patches (mean over heads) as the saliency map.
 
 pub mod arch;
-pub mod checkpoint;
 pub mod fastmath;
 pub mod interpolate;
 pub mod model;
 pub mod onnx_export;
-pub mod pickle;
 pub mod preprocess;
-pub mod pth;
-pub mod safetensors;
-pub mod zip;
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sos_core::error::{BuildError, ExtractError};
 use sos_core::image::RgbImage;
@@ -35,7 +29,7 @@ use sos_core::plugin::{BuildContext, FeatureExtractor, FeatureExtractorConfig, F
 use sos_core::registry::Registration;
 
 pub use arch::Arch;
-pub use checkpoint::{CheckpointError, StateDict};
+pub use crate::checkpoint::{CheckpointError, StateDict};
 pub use model::{LoadError, Vit, VitOutput, VitShape};
 pub use preprocess::{Preprocess, Resize};
 
@@ -285,32 +279,18 @@ pub fn feature_maps(out: &VitOutput) -> Vec<FeatureMap> {
 
 impl FeatureExtractor for DinoVit {
     fn extract(&self, images: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError> {
-        let valid = |img: &RgbImage| img.width > 0 && img.height > 0 && img.data.len() == img.width * img.height * 3;
-        let inputs: Vec<Option<preprocess::Tensor3>> =
-            images.par_iter().map(|img| valid(img).then(|| self.preprocess.apply(img))).collect();
+        let inputs = self.preprocess.apply_all(images);
         let mut out: Vec<Option<FeatureMap>> = vec![None; images.len()];
-        let mut i = 0;
-        while i < inputs.len() {
-            let Some(first) = &inputs[i] else {
-                out[i] = Some(self.empty_map());
-                i += 1;
+        for run in preprocess::equal_size_runs(&inputs, self.batch) {
+            let Some(first) = &inputs[run.start] else {
+                out[run.start] = Some(self.empty_map());
                 continue;
             };
             let (h, w) = (first.height, first.width);
-            // A run of equal-sized inputs, at most `batch` long.
-            let mut j = i;
-            while j < inputs.len() && j - i < self.batch && inputs[j].as_ref().is_some_and(|t| (t.height, t.width) == (h, w)) {
-                j += 1;
-            }
-            let mut batch = Vec::with_capacity((j - i) * 3 * h * w);
-            for t in inputs[i..j].iter().flatten() {
-                batch.extend_from_slice(&t.data);
-            }
-            let result = self.model.forward(&batch, j - i, h, w);
+            let result = self.model.forward(&preprocess::stack(&inputs[run.clone()]), run.len(), h, w);
             for (k, map) in feature_maps(&result).into_iter().enumerate() {
-                out[i + k] = Some(map);
+                out[run.start + k] = Some(map);
             }
-            i = j;
         }
         // The native forward cannot fail on valid inputs; invalid ones got empty maps above.
         Ok(out.into_iter().map(|m| m.unwrap_or_else(|| self.empty_map())).collect())

@@ -18,7 +18,7 @@ use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use sos_core::nn::{matmul, MatRef, PARALLEL_MIN_MACS};
 
-use super::checkpoint::{CheckpointError, StateDict};
+use crate::checkpoint::{CheckpointError, StateDict};
 use super::fastmath::{gelu, softmax_row, sum};
 use super::interpolate::interpolate_pos_grid;
 

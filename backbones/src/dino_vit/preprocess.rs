@@ -11,6 +11,9 @@
 //! normalisation commutes with them. For 64-px patches the composition equals a direct
 //! 64 → 224 resize. `double_normalize = false` gives the usual single normalisation.
 
+use std::ops::Range;
+
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sos_core::image::RgbImage;
 
@@ -159,9 +162,52 @@ impl Preprocess {
     }
 }
 
+impl Preprocess {
+    /// The model inputs of a set of images, in parallel; `None` for an image without pixels
+    /// (or with a buffer of the wrong length), which the extractors answer with an empty map.
+    pub fn apply_all(&self, images: &[RgbImage]) -> Vec<Option<Tensor3>> {
+        let valid = |img: &RgbImage| img.width > 0 && img.height > 0 && img.data.len() == img.width * img.height * 3;
+        images.par_iter().map(|img| valid(img).then(|| self.apply(img))).collect()
+    }
+}
+
+/// Splits inputs into consecutive runs of equal-sized images, at most `max` long, each run one
+/// batch of a forward pass; a `None` input is a run of its own.
+pub fn equal_size_runs(inputs: &[Option<Tensor3>], max: usize) -> Vec<Range<usize>> {
+    let size = |i: usize| inputs[i].as_ref().map(|t| (t.height, t.width));
+    let mut runs = Vec::new();
+    let mut i = 0;
+    while i < inputs.len() {
+        let mut j = i + 1;
+        if size(i).is_some() {
+            while j < inputs.len() && j - i < max.max(1) && size(j) == size(i) {
+                j += 1;
+            }
+        }
+        runs.push(i..j);
+        i = j;
+    }
+    runs
+}
+
+/// The images of a run as one `[n, 3, height, width]` batch.
+pub fn stack(inputs: &[Option<Tensor3>]) -> Vec<f32> {
+    inputs.iter().flatten().flat_map(|t| t.data.iter().copied()).collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn runs_group_equal_sizes_up_to_the_batch() {
+        let t = |h: usize, w: usize| Some(Tensor3 { height: h, width: w, data: vec![0.0; 3 * h * w] });
+        let inputs = [t(2, 2), t(2, 2), t(2, 2), None, t(2, 2), t(3, 2), t(3, 2)];
+        assert_eq!(equal_size_runs(&inputs, 2), vec![0..2, 2..3, 3..4, 4..5, 5..7]);
+        assert_eq!(equal_size_runs(&inputs, 0).len(), 7);
+        assert_eq!(equal_size_runs(&[None, None], 8), vec![0..1, 1..2]);
+        assert_eq!(stack(&inputs[..2]).len(), 24);
+    }
 
     #[test]
     fn composed_nearest_equals_the_direct_resize_for_64_px_patches() {

@@ -3,6 +3,8 @@
 
 use sos_core::camera::{dot, normalize, Vec3};
 
+use super::roots::smallest_root_in;
+
 /// Hits closer than this are ignored, so secondary rays do not re-hit their own surface.
 pub const T_MIN: f32 = 1e-4;
 
@@ -159,6 +161,50 @@ pub fn yawed_box(o: Vec3, d: Vec3, centre: Vec3, half: Vec3, yaw: f32) -> Option
     Some((t, n))
 }
 
+/// Torus lying flat (axis +Y) at `centre`: a tube of radius `minor` around the horizontal circle
+/// of radius `major`.
+pub fn torus(o: Vec3, d: Vec3, centre: Vec3, major: f32, minor: f32) -> Option<Hit> {
+    let oc = [(o[0] - centre[0]) as f64, (o[1] - centre[1]) as f64, (o[2] - centre[2]) as f64];
+    let d = [d[0] as f64, d[1] as f64, d[2] as f64];
+    let (big, small) = (major as f64, minor as f64);
+    // Only the stretch of the ray inside the bounding sphere and the slab |y| ≤ minor can hit.
+    let bound = big + small;
+    let b = oc[0] * d[0] + oc[1] * d[1] + oc[2] * d[2];
+    let disc = b * b - (oc[0] * oc[0] + oc[1] * oc[1] + oc[2] * oc[2] - bound * bound);
+    if disc < 0.0 {
+        return None;
+    }
+    let (mut t_in, mut t_out) = (-b - disc.sqrt(), -b + disc.sqrt());
+    if d[1].abs() > 1e-12 {
+        let (ta, tb) = ((-small - oc[1]) / d[1], (small - oc[1]) / d[1]);
+        t_in = t_in.max(ta.min(tb));
+        t_out = t_out.min(ta.max(tb));
+    } else if oc[1].abs() > small {
+        return None;
+    }
+    if t_out <= T_MIN as f64 || t_in > t_out {
+        return None;
+    }
+    // Solve from the entry point: the quartic's coefficients grow with the fourth power of the
+    // distance, so a nearby origin keeps its roots accurate.
+    let t0 = t_in.max(0.0);
+    let p = [oc[0] + t0 * d[0], oc[1] + t0 * d[1], oc[2] + t0 * d[2]];
+    // (|p + s d|² + R² − r²)² = 4R² ((px + s dx)² + (pz + s dz)²), with |d| = 1.
+    let n = p[0] * d[0] + p[1] * d[1] + p[2] * d[2];
+    let k = p[0] * p[0] + p[1] * p[1] + p[2] * p[2] + big * big - small * small;
+    let a = d[0] * d[0] + d[2] * d[2];
+    let bh = p[0] * d[0] + p[2] * d[2];
+    let ch = p[0] * p[0] + p[2] * p[2];
+    let r4 = 4.0 * big * big;
+    let coefficients = [k * k - r4 * ch, 4.0 * n * k - 2.0 * r4 * bh, 4.0 * n * n + 2.0 * k - r4 * a, 4.0 * n, 1.0];
+    let s = smallest_root_in(&coefficients, T_MIN as f64 - t0, t_out - t0 + 1e-9)?;
+    let t = t0 + s;
+    let q = [p[0] + s * d[0], p[1] + s * d[1], p[2] + s * d[2]];
+    let ring = (q[0] * q[0] + q[2] * q[2]).sqrt().max(1e-12);
+    let normal = [q[0] - big * q[0] / ring, q[1], q[2] - big * q[2] / ring];
+    Some((t as f32, normalize(normal.map(|v| v as f32))))
+}
+
 /// Exit of a ray starting inside the axis-aligned box `[min, max]`: distance, inward normal
 /// and the face index (0/1 = −X/+X wall, 2/3 = floor/ceiling, 4/5 = −Z/+Z wall).
 pub fn room_exit(o: Vec3, d: Vec3, min: Vec3, max: Vec3) -> (f32, Vec3, usize) {
@@ -214,5 +260,64 @@ mod tests {
         assert!(sphere(o, [0.0, 1.0, 0.0], [0.0, 0.5, 0.0], 1.0).is_none());
         let (t, n, face) = room_exit([0.0, 1.0, 0.0], d, [-3.0, 0.0, -3.0], [3.0, 3.0, 3.0]);
         assert!((t - 3.0).abs() < 1e-6 && face == 4 && n[2] == 1.0);
+    }
+    /// Signed distance to the torus of `torus_hits_match_the_surface`.
+    fn torus_distance(p: Vec3) -> f32 {
+        let ring = (p[0] * p[0] + p[2] * p[2]).sqrt() - 0.6;
+        (ring * ring + (p[1] - 1.0) * (p[1] - 1.0)).sqrt() - 0.2
+    }
+
+    #[test]
+    fn torus_hits_match_the_surface() {
+        let c = [0.0, 1.0, 0.0];
+        // Straight at the front of the tube, through the middle of the ring, down the hole.
+        let (t, n) = torus([0.0, 1.0, 5.0], [0.0, 0.0, -1.0], c, 0.6, 0.2).unwrap();
+        assert!((t - 4.2).abs() < 1e-5 && (n[2] - 1.0).abs() < 1e-5, "{t} {n:?}");
+        // Along the ring's tangent the ray runs inside the tube's outer wall.
+        let (t, _) = torus([0.6, 1.0, 5.0], [0.0, 0.0, -1.0], c, 0.6, 0.2).unwrap();
+        assert!((t - (5.0 - 0.28f32.sqrt())).abs() < 1e-5, "{t}");
+        let (t, n) = torus([-5.0, 1.0, 0.0], [1.0, 0.0, 0.0], c, 0.6, 0.2).unwrap();
+        assert!((t - 4.2).abs() < 1e-5 && (n[0] + 1.0).abs() < 1e-5, "{t} {n:?}");
+        assert!(torus([0.0, 5.0, 0.0], [0.0, -1.0, 0.0], c, 0.6, 0.2).is_none());
+        // From inside the hole the ray meets the inner wall.
+        let (t, n) = torus([0.0, 1.0, 0.0], [1.0, 0.0, 0.0], c, 0.6, 0.2).unwrap();
+        assert!((t - 0.4).abs() < 1e-5 && (n[0] + 1.0).abs() < 1e-5, "{t} {n:?}");
+        // Looking down onto the tube hits its top.
+        let (t, n) = torus([0.6, 3.0, 0.0], [0.0, -1.0, 0.0], c, 0.6, 0.2).unwrap();
+        assert!((t - 1.8).abs() < 1e-5 && n[1] > 0.999, "{t} {n:?}");
+        // Many rays: the hit lies on the surface, with the surface's normal, and no point of
+        // the ray before it (sampled every millimetre) is inside the tube.
+        let mut state = 1u32;
+        let mut rnd = || {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (state >> 8) as f32 / (1u32 << 24) as f32
+        };
+        let mut hits = 0;
+        for _ in 0..2000 {
+            let o = [4.0 * rnd() - 2.0, 1.0 + 3.0 * rnd() - 1.5, 3.0 + rnd()];
+            let target = [1.8 * rnd() - 0.9, 1.0 + 0.5 * rnd() - 0.25, 1.8 * rnd() - 0.9];
+            let d = normalize([target[0] - o[0], target[1] - o[1], target[2] - o[2]]);
+            let at = |t: f32| [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
+            let hit = torus(o, d, c, 0.6, 0.2);
+            let clear_until = hit.map_or(8.0, |(t, _)| t - 1e-3);
+            let mut t = 0.0;
+            while t < clear_until {
+                assert!(torus_distance(at(t)) > -1e-4, "{o:?} {d:?}: inside at {t} before the hit {hit:?}");
+                t += 1e-3;
+            }
+            if let Some((t, n)) = hit {
+                hits += 1;
+                let p = at(t);
+                assert!(torus_distance(p).abs() < 1e-4);
+                let e = 1e-3;
+                let g = [0, 1, 2].map(|k| {
+                    let mut q = p;
+                    q[k] += e;
+                    (torus_distance(q) - torus_distance(p)) / e
+                });
+                assert!(dot(normalize(g), n) > 0.99, "{n:?} vs {g:?}");
+            }
+        }
+        assert!(hits > 500, "only {hits} of 2000 rays hit");
     }
 }

@@ -39,16 +39,11 @@ pub fn render_view<W: Trace + Sync>(world: &W, cam: &Camera, depth_origin: Vec3,
         .map(|(row, (rgb_row, mask_row))| {
             let mut range = [f32::INFINITY, f32::NEG_INFINITY];
             for col in 0..w {
-                let mut acc = [0.0f32; 3];
-                for [sx, sy] in SUBSAMPLES {
-                    let d = cam.direction(col as f32 + sx, row as f32 + sy);
-                    let s = world.trace(origin, d);
-                    (0..3).for_each(|k| acc[k] += 0.25 * s.rgb[k]);
-                }
-                rgb_row[col * 3..col * 3 + 3].copy_from_slice(&acc);
-                let centre = world.trace(origin, cam.direction(col as f32 + 0.5, row as f32 + 0.5));
-                mask_row[col] = if centre.foreground { 1.0 } else { 0.0 };
-                let depth = dot(sub(centre.point, depth_origin), depth_axis);
+                let subs = SUBSAMPLES.map(|[sx, sy]| cam.direction(col as f32 + sx, row as f32 + sy));
+                rgb_row[col * 3..col * 3 + 3].copy_from_slice(&world.pixel(origin, subs));
+                let (foreground, point) = world.probe(origin, cam.direction(col as f32 + 0.5, row as f32 + 0.5));
+                mask_row[col] = if foreground { 1.0 } else { 0.0 };
+                let depth = dot(sub(point, depth_origin), depth_axis);
                 range = [range[0].min(depth), range[1].max(depth)];
             }
             range

@@ -61,6 +61,23 @@ pub struct Sample {
 pub trait Trace {
     /// Traces a primary ray (unit direction `d`).
     fn trace(&self, o: Vec3, d: Vec3) -> Sample;
+
+    /// Whether the ray's first hit is foreground, and where it is: [`Trace::trace`] without
+    /// the shading, for masks and depth bounds.
+    fn probe(&self, o: Vec3, d: Vec3) -> (bool, Vec3) {
+        let s = self.trace(o, d);
+        (s.foreground, s.point)
+    }
+
+    /// Colour of a pixel: the mean of the samples along its sub-pixel rays `subs`.
+    fn pixel(&self, o: Vec3, subs: [Vec3; 4]) -> Rgb {
+        let mut acc = [0.0f32; 3];
+        for d in subs {
+            let s = self.trace(o, d);
+            (0..3).for_each(|k| acc[k] += 0.25 * s.rgb[k]);
+        }
+        acc
+    }
 }
 
 impl Trace for World {

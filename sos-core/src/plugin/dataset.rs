@@ -2,6 +2,7 @@
 
 use std::path::Path;
 
+use crate::derived::DerivedSetting;
 use crate::registry::Registration;
 use crate::scene::Scene;
 
@@ -11,6 +12,14 @@ pub trait DatasetConfig: std::fmt::Debug + Send + Sync {
     /// Loads (or generates) the scene. Relative paths in the config are resolved against
     /// `config_dir`. Errors name the file at fault and how to fix it.
     fn open(&self, config_dir: &Path) -> Result<Scene, DatasetError>;
+
+    /// The settings this adapter chose for `scene` (opened from this config, relative paths
+    /// against `config_dir`) because the
+    /// config left them unset, e.g. the extent derived from the cameras; printed at the start
+    /// of a run and recorded with its results.
+    fn derived(&self, _config_dir: &Path, _scene: &Scene) -> Vec<DerivedSetting> {
+        Vec::new()
+    }
 }
 
 inventory::collect!(Registration<dyn DatasetConfig>);

@@ -2,6 +2,7 @@
 
 use std::path::{Path, PathBuf};
 
+use crate::derived::{DerivedSetting, PatchFacts};
 use crate::error::{BuildError, ExtractError};
 use crate::image::RgbImage;
 use crate::registry::Registration;
@@ -43,6 +44,13 @@ pub trait FeatureExtractorConfig: std::fmt::Debug + Send + Sync {
     /// Validates the settings, loads weights (relative paths resolved with
     /// [`BuildContext::resolve`]) and builds the extractor.
     fn build(&self, ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError>;
+
+    /// Fills the settings left unset that follow from the patches the teacher is shown (e.g.
+    /// a cell size giving a fixed grid per patch) and returns what it chose. Called once per
+    /// run before [`FeatureExtractorConfig::build`]; a teacher with fixed input needs nothing.
+    fn derive_for(&mut self, _patch: &PatchFacts) -> Vec<DerivedSetting> {
+        Vec::new()
+    }
 }
 
 /// What building an extractor needs from the run besides its own settings.

@@ -7,6 +7,7 @@ use rand::SeedableRng;
 
 use crate::camera::Camera;
 use crate::config::RunConfig;
+use crate::derived::{derive_settings, DerivedSetting};
 use crate::error::RunError;
 use crate::image::RgbImage;
 use crate::plugin::{BuildContext, RadianceField};
@@ -41,6 +42,8 @@ pub struct Session {
     pub occupancy: Option<OccupancyGrid>,
     /// Stage-1 steps completed.
     pub step: usize,
+    /// The settings this run derived from its scene (already written into `config`).
+    pub derived: Vec<DerivedSetting>,
 }
 
 /// The `kind` tag of a typetag'd config object.
@@ -60,13 +63,14 @@ impl Session {
     }
 
     /// Builds a session from an already parsed config.
-    pub fn from_config(config: RunConfig, config_dir: &Path) -> Result<Session, RunError> {
+    pub fn from_config(mut config: RunConfig, config_dir: &Path) -> Result<Session, RunError> {
         crate::train::memory::keep_freed_memory();
         let scene = config.scene.open(config_dir)?;
         scene.validate().map_err(|message| crate::plugin::dataset::DatasetError::Invalid {
             path: config_dir.to_path_buf(),
             message,
         })?;
+        let derived = derive_settings(&mut config, config_dir, &scene);
         let field = config.field.build(&scene.extent, config.seed)?;
         let field_kind = kind_of(&config.field);
         let contraction = Contraction::new(&scene.extent);
@@ -87,6 +91,7 @@ impl Session {
             contraction,
             occupancy,
             step: 0,
+            derived,
         })
     }
 

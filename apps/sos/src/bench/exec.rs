@@ -11,7 +11,7 @@ use sos_core::segment::evaluate::{evaluate_masks, MaskEval};
 use sos_core::segment::infer::MaskInference;
 use sos_core::segment::store::{save_with_head, HeadMeta};
 use sos_core::segment::train::{train_segmentation_observed, SegStepStats, Segmenter};
-use sos_core::train::evaluate::evaluate_views;
+use sos_core::train::evaluate::{evaluate_views, overfitting_warning};
 use sos_core::train::observer::TrainObserver;
 use sos_core::train::photometric::{train_photometric_observed, StepStats};
 use sos_core::train::Session;
@@ -43,13 +43,14 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
     let text = std::fs::read_to_string(&args.config).with_context(|| format!("reading {}", args.config.display()))?;
     let config = sos_core::config::RunConfig::parse(&text, &args.config)?;
     let mut session = Session::from_config(config, &args.config_dir)?;
+    crate::commands::announce_resolved(&session)?;
     let segmenter = if session.config.segment.steps > 0 { Some(Segmenter::build(&session)?) } else { None };
     let mut timing = Timing { setup: started.elapsed().as_secs_f64(), ..Default::default() };
     let mut curves = CurveRecorder::new(args.curve_points, &session, segmenter.is_some());
 
     let stage1 = Instant::now();
     curves.begin_stage();
-    train_photometric_observed(&mut session, false, &mut curves)?;
+    let stage1_stats = train_photometric_observed(&mut session, false, &mut curves)?;
     timing.stage1 = stage1.elapsed().as_secs_f64() - curves.stage1_eval;
     let mut notes = Vec::new();
     let metrics = match segmenter {
@@ -77,6 +78,9 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
             mask_metrics(&eval, &mut notes)
         }
     };
+    if let Some(w) = metrics.psnr.and_then(|p| overfitting_warning(stage1_stats.psnr, p)) {
+        notes.push(w);
+    }
     curves.finish(&metrics, timing.stage1, timing.stage2);
     if session.scene.test.is_empty() {
         notes.push("the scene holds out no views: no held-out metrics".into());
@@ -91,6 +95,7 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
         cpu_stolen: ticks.zip(cpu_ticks()).and_then(|(a, b)| stolen_between(a, b)),
         curves: curves.curves,
         notes,
+        derived: session.derived.clone(),
     };
     crate::commands::write_json(&args.outcome, &outcome)
 }

@@ -16,3 +16,4 @@ pub mod record;
 pub mod report;
 pub mod runner;
 pub mod spec;
+pub mod spread;

@@ -133,6 +133,9 @@ pub struct Outcome {
     /// Notes (e.g. a metric that was not finite).
     #[serde(default)]
     pub notes: Vec<String>,
+    /// The settings the run derived from its scene.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub derived: Vec<sos_core::derived::DerivedSetting>,
 }
 
 /// The machine a run ran on.

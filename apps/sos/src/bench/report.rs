@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use super::plot::{write_chart, Chart, Series};
 use super::record::{RunRecord, Status};
+use super::spread::{self, across_scenes, AcrossScenes};
 use super::runner::BenchMeta;
 
 /// Mean and standard deviation over seeds.
@@ -90,6 +91,9 @@ pub struct Report {
     pub counts: BTreeMap<String, usize>,
     /// One table per scene.
     pub scenes: Vec<SceneTable>,
+    /// Each method's mean and worst over scenes.
+    #[serde(default)]
+    pub across: Vec<AcrossScenes>,
 }
 
 /// Builds the report of `records`.
@@ -98,7 +102,9 @@ pub fn build(records: &[RunRecord], meta: &BenchMeta) -> Report {
     for r in records {
         by_scene.entry(&r.key.scene).or_default().push(r);
     }
-    let scenes = by_scene.into_iter().map(|(scene, runs)| scene_table(scene, &runs, &meta.baseline)).collect();
+    let scenes: Vec<SceneTable> =
+        by_scene.into_iter().map(|(scene, runs)| scene_table(scene, &runs, &meta.baseline)).collect();
+    let across = across_scenes(&scenes);
     let mut counts = BTreeMap::new();
     for r in records {
         let key = match r.status {
@@ -126,6 +132,7 @@ pub fn build(records: &[RunRecord], meta: &BenchMeta) -> Report {
             .unwrap_or_default(),
         counts,
         scenes,
+        across,
     }
 }
 
@@ -240,6 +247,7 @@ impl Report {
             md.push_str(&format!("\n## {}\n\n", scene.scene));
             md.push_str(&table(&scene.rows, true));
         }
+        md.push_str(&spread::markdown(&self.across));
         md.push_str("\n## Plots\n\nIn `plots/`: `miou_vs_time` and `psnr_vs_stage1_time` (each method's mean over scenes, with the Pareto front; `_by_scene`: every scene's methods), per scene `<scene>_miou_vs_time` with the Pareto front, per sweep `sweep_<name>` (mIoU) and `sweep_<name>_time`.\n");
         md
     }
@@ -319,6 +327,14 @@ pub fn write(out: &Path, records: &[RunRecord], meta: &BenchMeta) -> anyhow::Res
     let md = out.join("report.md");
     crate::commands::write_atomic(&md, &report.to_markdown())?;
     write_plots(out, &report, records)?;
+    spread::copy_worst_masks(out, &report.across, |scene, method| {
+        records
+            .iter()
+            .filter(|r| r.status == Status::Done && r.key.sweep.is_none())
+            .filter(|r| r.key.scene == scene && r.key.variant == method)
+            .min_by_key(|r| r.key.seed)
+            .map(|r| out.join(super::runner::WORK_DIR).join(&r.key.id))
+    })?;
     Ok(report)
 }
 

@@ -14,6 +14,9 @@ use super::matrix::{Generate, PlannedRun};
 use super::record::{Outcome, RunRecord, Status};
 use super::report;
 
+/// Sub-folder of the output folder holding each run's own folder (`<id>/`) and config.
+pub const WORK_DIR: &str = "work";
+
 /// What describes a result folder (`<out>/bench.json`), so that `merge` and the report know
 /// the baseline and the file the runs came from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -63,7 +66,7 @@ pub fn run_all(
     progress: bool,
 ) -> anyhow::Result<Tally> {
     let runs_dir = out.join("runs");
-    let work_dir = out.join("work");
+    let work_dir = out.join(WORK_DIR);
     for d in [&runs_dir, &work_dir, &out.join("logs")] {
         std::fs::create_dir_all(d).with_context(|| format!("creating {} (is `--out` writable?)", d.display()))?;
     }
@@ -183,7 +186,7 @@ fn execute(run: &PlannedRun, out: &Path, curve_points: usize) -> anyhow::Result<
     if let Some(g) = &run.generate {
         ensure_generated(g, out)?;
     }
-    let work = out.join("work");
+    let work = out.join(WORK_DIR);
     let absolute =
         |p: &Path| if p.is_absolute() { p.to_path_buf() } else { std::env::current_dir().unwrap_or_default().join(p) };
     let run_dir = work.join(&run.key.id);

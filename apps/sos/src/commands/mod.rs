@@ -31,3 +31,18 @@ pub fn write_atomic(path: &Path, text: &str) -> anyhow::Result<()> {
     std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
     std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
 }
+
+/// Prints the settings the run derived from its scene and writes the config it runs with,
+/// every default and derived value filled in, to `<run>/resolved.toml`.
+pub fn announce_resolved(session: &sos_core::train::Session) -> anyhow::Result<()> {
+    eprintln!("scene extent: {}; near {:.3}", session.scene.extent, session.scene.near);
+    for d in &session.derived {
+        eprintln!("derived: {d}");
+    }
+    let mut text = String::from("# The config this run used: defaults and scene-derived settings filled in.\n");
+    for d in &session.derived {
+        text.push_str(&format!("# derived: {d}\n"));
+    }
+    text.push_str(&session.config.to_toml());
+    write_atomic(&session.run_dir.join("resolved.toml"), &text)
+}

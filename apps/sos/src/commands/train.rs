@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use sos_core::segment::train::Segmenter;
-use sos_core::train::evaluate::{evaluate_views, ImageEval};
+use sos_core::train::evaluate::{evaluate_views, overfitting_warning, ImageEval};
 use sos_core::train::photometric::train_photometric;
 use sos_core::train::Session;
 
@@ -28,6 +28,7 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
         session.field_kind,
         session.field.num_parameters()
     );
+    super::announce_resolved(&session)?;
     if resume && session.checkpoint_path().exists() {
         session.load_checkpoint(None)?;
         eprintln!("resumed at step {}", session.step);
@@ -44,6 +45,7 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
         "rays_per_step": session.config.train.rays_per_step,
         "train_seconds": train_seconds,
         "timing": { "stage1_seconds": train_seconds },
+        "derived": session.derived,
     });
     match segmenter {
         None => {
@@ -51,6 +53,7 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
             let eval = evaluate_views(&session, session.config.render.test_views)?;
             report["timing"]["stage1_eval_seconds"] = eval_started.elapsed().as_secs_f64().into();
             print_image_eval(&eval);
+            warn_if_overfitting(stats.psnr, &eval, &mut report);
             println!("render speed {:.0} rays/s; outputs in {}", eval.render_rays_per_second, session.run_dir.display());
             report["test"] = serde_json::to_value(&eval)?;
         }
@@ -65,6 +68,7 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
             let rays = session.scene.test.iter().map(|&i| camera(i).width as usize * camera(i).height as usize).sum();
             let eval = ImageEval::from_report(&masks.image, rays, masks.seconds);
             print_image_eval(&eval);
+            warn_if_overfitting(stats.psnr, &eval, &mut report);
             report["test"] = serde_json::to_value(&eval)?;
             report["stage2"] = stage2::report(&session, s2.seg.step, Some(s2.seconds), Some(&s2.stats), &masks);
             report["timing"]["stage2_seconds"] = s2.seconds.into();
@@ -75,6 +79,15 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
     super::write_json(&metrics_path, &report).context("writing metrics")?;
     println!("metrics in {}", metrics_path.display());
     Ok(())
+}
+
+/// Prints (and records in the metrics) a warning when the held-out views are far worse than
+/// the training rays.
+fn warn_if_overfitting(train_psnr: f64, eval: &ImageEval, report: &mut serde_json::Value) {
+    if let Some(w) = overfitting_warning(train_psnr, eval.psnr) {
+        eprintln!("warning: {w}");
+        report["warnings"] = serde_json::json!([w]);
+    }
 }
 
 /// The held-out quality line (a notice instead when the scene holds out no views).

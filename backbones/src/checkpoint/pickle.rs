@@ -1,5 +1,9 @@
 //! A small pickle virtual machine: enough of Python's pickle protocols 0–4 to read what
-//! `torch.save` writes for a state dict, without running any code.
+//! `torch.save` writes for a state dict (in the zip and the legacy container), without running
+//! any code.
+//!
+//! Every [`Value`] is cheap to clone (strings and bytes are shared), so a hostile pickle that
+//! repeats a memoised value many times costs a few bytes per repeat, not a copy each.
 //!
 //! Calls (`REDUCE`, `NEWOBJ`) are not executed: they become [`Value::Call`] records of the
 //! callable and its arguments, which the caller interprets (see `pth.rs`). A few builtins
@@ -20,12 +24,15 @@ pub enum Value {
     Bool(bool),
     /// An integer that fits in 64 bits.
     Int(i64),
+    /// A wider integer, as its little-endian two's-complement bytes (e.g. `torch.save`'s
+    /// legacy magic number).
+    BigInt(Rc<[u8]>),
     /// A float.
     Float(f64),
     /// A `str` (also Python 2 `str` read as Latin-1).
-    Str(String),
+    Str(Rc<str>),
     /// `bytes` / `bytearray`.
-    Bytes(Vec<u8>),
+    Bytes(Rc<[u8]>),
     /// A tuple.
     Tuple(Rc<Vec<Value>>),
     /// A list (also sets).
@@ -92,6 +99,7 @@ impl Value {
             Value::None => "None".into(),
             Value::Bool(b) => b.to_string(),
             Value::Int(i) => i.to_string(),
+            Value::BigInt(b) => format!("{}-byte integer", b.len()),
             Value::Float(f) => f.to_string(),
             Value::Str(s) => format!("{s:?}"),
             Value::Bytes(b) => format!("bytes[{}]", b.len()),
@@ -216,7 +224,7 @@ impl<'a> Machine<'a> {
         self.stack.push(v);
     }
     fn set_items(&mut self, items: Vec<Value>) -> Result<(), String> {
-        if items.len() % 2 != 0 {
+        if !items.len().is_multiple_of(2) {
             return Err("pickle SETITEMS with an odd number of values".into());
         }
         let target = self.top()?;
@@ -243,21 +251,18 @@ impl<'a> Machine<'a> {
     }
 }
 
-fn int_from_le(bytes: &[u8]) -> Result<i64, String> {
-    if bytes.is_empty() {
-        return Ok(0);
-    }
+/// A `LONG1`/`LONG4` integer: an [`Value::Int`] when it fits in 64 bits, else a [`Value::BigInt`].
+fn int_from_le(bytes: &[u8]) -> Value {
+    let Some(&last) = bytes.last() else { return Value::Int(0) };
+    let sign = if last & 0x80 != 0 { 0xFF } else { 0 };
     if bytes.len() > 8 {
-        // Only sign extension bytes may exceed 64 bits.
-        let sign = if bytes[bytes.len() - 1] & 0x80 != 0 { 0xFF } else { 0 };
-        if bytes[8..].iter().any(|&b| b != sign) {
-            return Err("pickle integer wider than 64 bits".into());
-        }
-        return int_from_le(&bytes[..8]);
+        // Bytes past the 64th bit that only extend the sign still fit (when bit 63 agrees).
+        let fits = bytes[8..].iter().all(|&b| b == sign) && (bytes[7] & 0x80 != 0) == (sign == 0xFF);
+        return if fits { int_from_le(&bytes[..8]) } else { Value::BigInt(bytes.into()) };
     }
-    let mut buf = if bytes[bytes.len() - 1] & 0x80 != 0 { [0xFF; 8] } else { [0; 8] };
+    let mut buf = [sign; 8];
     buf[..bytes.len()].copy_from_slice(bytes);
-    Ok(i64::from_le_bytes(buf))
+    Value::Int(i64::from_le_bytes(buf))
 }
 
 fn parse_text_int(line: &str) -> Result<Value, String> {
@@ -269,8 +274,15 @@ fn parse_text_int(line: &str) -> Result<Value, String> {
     }
 }
 
-/// Runs a pickle and returns the value it leaves.
+/// Runs a pickle and returns the value it leaves (bytes after its `STOP` are ignored).
 pub fn load(data: &[u8]) -> Result<Value, String> {
+    load_prefix(data).map(|(v, _)| v)
+}
+
+/// Runs the pickle at the start of `data`; returns the value it leaves and the number of
+/// bytes it took, up to and including its `STOP` (the legacy `torch.save` format writes
+/// several pickles one after the other).
+pub fn load_prefix(data: &[u8]) -> Result<(Value, usize), String> {
     let mut m = Machine { data, pos: 0, stack: Vec::new(), marks: Vec::new(), memo: HashMap::new() };
     loop {
         let at = m.pos;
@@ -285,7 +297,7 @@ pub fn load(data: &[u8]) -> Result<Value, String> {
             0x95 => {
                 m.u64()?; // FRAME: length hint only
             }
-            b'.' => return m.pop().map_err(|_| "pickle ended with an empty stack".to_string()),
+            b'.' => return m.pop().map(|v| (v, m.pos)).map_err(|_| "pickle ended with an empty stack".to_string()),
             b'(' => m.marks.push(m.stack.len()),
             b'0' => {
                 m.pop()?;
@@ -313,12 +325,12 @@ pub fn load(data: &[u8]) -> Result<Value, String> {
             0x8a => {
                 let n = m.u8()? as u64;
                 let b = m.len_prefixed(n)?;
-                m.stack.push(Value::Int(int_from_le(b)?));
+                m.stack.push(int_from_le(b));
             }
             0x8b => {
                 let n = m.u32()? as u64;
                 let b = m.len_prefixed(n)?;
-                m.stack.push(Value::Int(int_from_le(b)?));
+                m.stack.push(int_from_le(b));
             }
             b'I' | b'L' => {
                 let line = m.line()?;
@@ -343,12 +355,12 @@ pub fn load(data: &[u8]) -> Result<Value, String> {
                 };
                 let b = m.len_prefixed(n)?;
                 let s = std::str::from_utf8(b).map_err(|_| "pickle string is not UTF-8")?;
-                m.stack.push(Value::Str(s.to_string()));
+                m.stack.push(Value::Str(s.into()));
             }
             b'T' | b'U' => {
                 let n = if op == b'T' { m.u32()? as u64 } else { m.u8()? as u64 };
                 let b = m.len_prefixed(n)?;
-                m.stack.push(Value::Str(b.iter().map(|&c| c as char).collect()));
+                m.stack.push(Value::Str(b.iter().map(|&c| c as char).collect::<String>().into()));
             }
             b'B' | b'C' | 0x8e | 0x96 => {
                 let n = match op {
@@ -357,11 +369,11 @@ pub fn load(data: &[u8]) -> Result<Value, String> {
                     _ => m.u64()?,
                 };
                 let b = m.len_prefixed(n)?;
-                m.stack.push(Value::Bytes(b.to_vec()));
+                m.stack.push(Value::Bytes(b.into()));
             }
             b'V' => {
                 let line = m.line()?;
-                m.stack.push(Value::Str(line));
+                m.stack.push(Value::Str(line.into()));
             }
             b'S' => {
                 let line = m.line()?;
@@ -371,7 +383,7 @@ pub fn load(data: &[u8]) -> Result<Value, String> {
                     .and_then(|s| s.strip_suffix('\''))
                     .or_else(|| t.strip_prefix('"').and_then(|s| s.strip_suffix('"')))
                     .ok_or_else(|| format!("pickle string `{line}` is not quoted"))?;
-                m.stack.push(Value::Str(unquoted.to_string()));
+                m.stack.push(Value::Str(unquoted.into()));
             }
             // Constants.
             b'N' => m.stack.push(Value::None),
@@ -498,7 +510,7 @@ pub fn load(data: &[u8]) -> Result<Value, String> {
             }
             b'P' => {
                 let line = m.line()?;
-                m.stack.push(Value::Persistent(Rc::new(Value::Str(line))));
+                m.stack.push(Value::Persistent(Rc::new(Value::Str(line.into()))));
             }
             other => {
                 return Err(format!(
@@ -577,10 +589,33 @@ mod tests {
             b"\x80\x02\xff.",
             b"\x80\x09.",
             b"\x80\x02(\x85.",
-            b"\x80\x02\x8a\x0a\x01\x01\x01\x01\x01\x01\x01\x01\x01\x01.",
+            b"\x80\x02\x8a\x0a\x01\x01\x01.",
+            b"\x80\x02\x8b\xff\xff\xff\xff\x01.",
         ] {
             assert!(load(bad).is_err(), "{bad:?} should fail");
         }
+    }
+
+    #[test]
+    fn wide_integers_are_kept_as_bytes_and_concatenated_pickles_are_split() {
+        // torch.save's legacy magic number 0x1950a86a20f9469cfc6c, then a second pickle.
+        let magic = [0x6c, 0xfc, 0x9c, 0x46, 0xf9, 0x20, 0x6a, 0xa8, 0x50, 0x19];
+        let mut p = vec![0x80, 2, 0x8a, 10];
+        p.extend(magic);
+        p.push(b'.');
+        let first_len = p.len();
+        p.extend(b"\x80\x02M\xe9\x03.");
+        let (v, used) = load_prefix(&p).unwrap();
+        assert_eq!(used, first_len);
+        assert!(matches!(&v, Value::BigInt(b) if b[..] == magic));
+        assert_eq!(load(&p[used..]).unwrap().as_int(), Some(1001));
+        // 9 bytes that only extend the sign are still 64-bit integers; 2^63 is not.
+        let int = |bytes: &[u8]| int_from_le(bytes).as_int();
+        assert_eq!(int(&[0xfe, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff]), Some(-2));
+        assert_eq!(int(&[0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0x7f, 0x00]), Some(i64::MAX));
+        assert_eq!(int(&[0, 0, 0, 0, 0, 0, 0, 0x80, 0x00]), None);
+        assert_eq!(int(&[0x80]), Some(-128));
+        assert_eq!(int(&[]), Some(0));
     }
 
     #[test]

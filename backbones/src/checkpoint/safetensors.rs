@@ -4,7 +4,7 @@
 
 use std::collections::BTreeMap;
 
-use super::checkpoint::{contiguous_strides, DType, TensorEntry};
+use super::{contiguous_strides, DType, TensorEntry};
 
 /// Headers larger than this are not safetensors (the format caps them at 100 MB).
 const MAX_HEADER: u64 = 100_000_000;

@@ -1,7 +1,20 @@
 //! A checkpoint's tensors by name, whatever the file format: PyTorch's zip checkpoints
-//! (`torch.save`, as the official DINO `.pth` files) and `.safetensors`. The file is read
-//! once; tensors are converted to `f32` on request, so a tensor the model does not use may
-//! have any type.
+//! (`torch.save` since 1.6, as the official DINO `.pth` files), its legacy format (before 1.6,
+//! or `_use_new_zipfile_serialization=False`, as the EfficientNet-Lite0 weights) and
+//! `.safetensors`. The file is read once; tensors are converted to `f32` on request, so a
+//! tensor the model does not use may have any type.
+//!
+//! - [`torch_zip`] and [`torch_legacy`] are the two `torch.save` containers, [`torch_pickle`]
+//!   what both pickle (state dicts, tensor rebuild calls), on the [`pickle`] machine;
+//! - [`zip`] is the part of the ZIP format the zip container needs, [`safetensors`] the other
+//!   format.
+
+pub mod pickle;
+pub mod safetensors;
+pub mod torch_legacy;
+pub mod torch_pickle;
+pub mod torch_zip;
+pub mod zip;
 
 use std::collections::BTreeMap;
 use std::ops::Range;
@@ -40,6 +53,8 @@ impl std::fmt::Display for DType {
 pub enum Format {
     /// PyTorch's zip checkpoint (`torch.save` since PyTorch 1.6).
     TorchZip,
+    /// PyTorch's legacy checkpoint: consecutive pickles, then the raw storages.
+    TorchLegacy,
     /// safetensors.
     Safetensors,
 }
@@ -128,22 +143,19 @@ impl StateDict {
     pub fn from_bytes(bytes: Vec<u8>, path: &Path) -> Result<StateDict, CheckpointError> {
         let format_error = |message: String| CheckpointError::Format { path: path.into(), message };
         let (format, entries) = if bytes.starts_with(b"PK\x03\x04") || bytes.starts_with(b"PK\x05\x06") {
-            (Format::TorchZip, super::pth::read_entries(&bytes).map_err(format_error)?)
-        } else if super::safetensors::looks_like(&bytes) {
-            (Format::Safetensors, super::safetensors::read_entries(&bytes).map_err(format_error)?)
+            (Format::TorchZip, torch_zip::read_entries(&bytes).map_err(format_error)?)
+        } else if safetensors::looks_like(&bytes) {
+            (Format::Safetensors, safetensors::read_entries(&bytes).map_err(format_error)?)
         } else if bytes.first() == Some(&0x80) {
-            return Err(format_error(
-                "this is a PyTorch checkpoint in the legacy (pre-1.6, non-zip) format, which is not supported; \
-                 load it with PyTorch and `torch.save` it again (the zip format is the default since 1.6), \
-                 or save it as .safetensors"
-                    .into(),
-            ));
+            let entries = torch_legacy::read_entries(&bytes)
+                .map_err(|m| format_error(format!("PyTorch checkpoint in the legacy (non-zip) format: {m}")))?;
+            (Format::TorchLegacy, entries)
         } else if bytes.is_empty() {
             return Err(format_error("the file is empty (an interrupted download?)".into()));
         } else {
             return Err(format_error(
-                "not a PyTorch zip checkpoint (.pth) nor a .safetensors file: the file does not start \
-                 like either (an HTML error page saved by a failed download?)"
+                "not a PyTorch zip checkpoint (.pth), a legacy PyTorch checkpoint nor a .safetensors file: the file \
+                 does not start like any of them (an HTML error page saved by a failed download?)"
                     .into(),
             ));
         };
@@ -248,7 +260,7 @@ fn check_bounds(e: &TensorEntry) -> Result<(), String> {
         return Err(format!("{} dimensions but {} strides", e.shape.len(), e.stride.len()));
     }
     let Some(size) = e.dtype.size() else { return Ok(()) }; // checked when (never) read
-    if e.storage.len() % size != 0 {
+    if !e.storage.len().is_multiple_of(size) {
         return Err(format!("storage of {} bytes is not a whole number of {size}-byte elements", e.storage.len()));
     }
     if e.numel() == 0 {

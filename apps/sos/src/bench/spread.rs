@@ -1,0 +1,200 @@
+//! How one method does across the scenes of a benchmark: mean and worst mIoU and NV-ARI over
+//! scenes, the worst scene named, and that scene's held-out masks copied next to the report
+//! (`worst/<method>/`), so a default is judged on its worst world, not its average.
+
+use std::path::Path;
+
+use anyhow::Context;
+use serde::{Deserialize, Serialize};
+
+use super::report::SceneTable;
+
+/// Sub-folder of the report that holds the worst scene's mask images.
+pub const WORST_DIR: &str = "worst";
+
+/// One method over every scene it finished on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AcrossScenes {
+    /// The method (sweep points are left out: they vary one scene's settings).
+    pub method: String,
+    /// Scenes with a finished run.
+    pub scenes: usize,
+    /// Mean over scenes of the per-scene mean mIoU.
+    pub miou_mean: f64,
+    /// Lowest per-scene mean mIoU, and its scene.
+    pub miou_worst: (f64, String),
+    /// Mean over scenes of the per-scene mean NV-ARI.
+    pub nv_ari_mean: f64,
+    /// Lowest per-scene mean NV-ARI, and its scene.
+    pub nv_ari_worst: (f64, String),
+}
+
+/// The spread of every method over at least two scenes with mIoU and NV-ARI.
+pub fn across_scenes(tables: &[SceneTable]) -> Vec<AcrossScenes> {
+    let mut methods: Vec<&str> =
+        tables.iter().flat_map(|t| t.rows.iter().filter(|r| r.sweep.is_none()).map(|r| r.variant.as_str())).collect();
+    methods.sort();
+    methods.dedup();
+    methods
+        .into_iter()
+        .filter_map(|method| {
+            let per_scene: Vec<(&str, f64, f64)> = tables
+                .iter()
+                .filter_map(|t| {
+                    let row = t.rows.iter().find(|r| r.sweep.is_none() && r.variant == method)?;
+                    Some((t.scene.as_str(), row.metrics.get("mIoU")?.mean, row.metrics.get("NV-ARI")?.mean))
+                })
+                .collect();
+            if per_scene.len() < 2 {
+                return None;
+            }
+            let n = per_scene.len() as f64;
+            let worst = |pick: fn(&(&str, f64, f64)) -> f64| {
+                let w = per_scene.iter().min_by(|a, b| pick(a).total_cmp(&pick(b))).expect("at least two scenes");
+                (pick(w), w.0.to_string())
+            };
+            Some(AcrossScenes {
+                method: method.to_string(),
+                scenes: per_scene.len(),
+                miou_mean: per_scene.iter().map(|s| s.1).sum::<f64>() / n,
+                miou_worst: worst(|s| s.1),
+                nv_ari_mean: per_scene.iter().map(|s| s.2).sum::<f64>() / n,
+                nv_ari_worst: worst(|s| s.2),
+            })
+        })
+        .collect()
+}
+
+/// The Markdown section (empty without a method over several scenes).
+pub fn markdown(spread: &[AcrossScenes]) -> String {
+    if spread.is_empty() {
+        return String::new();
+    }
+    let mut md = String::from(
+        "\n## Across scenes\n\nPer-scene means, then the mean and the worst over scenes. The worst mIoU scene's \
+         held-out masks and overlays are in `worst/<method>/`.\n\n\
+         | method | scenes | mIoU mean | mIoU worst | NV-ARI mean | NV-ARI worst |\n|---|---|---|---|---|---|\n",
+    );
+    for s in spread {
+        md.push_str(&format!(
+            "| {} | {} | {:.3} | {:.3} ({}) | {:.3} | {:.3} ({}) |\n",
+            s.method,
+            s.scenes,
+            s.miou_mean,
+            s.miou_worst.0,
+            s.miou_worst.1,
+            s.nv_ari_mean,
+            s.nv_ari_worst.0,
+            s.nv_ari_worst.1
+        ));
+    }
+    md
+}
+
+/// Copies the held-out masks and overlays of each method's worst-mIoU scene (its first seed's
+/// run folder under `work_dir`, found by `run_dir_of(scene, method)`) into
+/// `<out>/worst/<method>/`, replacing what an earlier report put there.
+pub fn copy_worst_masks(
+    out: &Path,
+    spread: &[AcrossScenes],
+    run_dir_of: impl Fn(&str, &str) -> Option<std::path::PathBuf>,
+) -> anyhow::Result<()> {
+    for s in spread {
+        let Some(run_dir) = run_dir_of(&s.miou_worst.1, &s.method) else { continue };
+        let dest = out.join(WORST_DIR).join(&s.method);
+        if dest.exists() {
+            std::fs::remove_dir_all(&dest).with_context(|| format!("clearing {}", dest.display()))?;
+        }
+        let mut copied = 0;
+        for sub in [sos_core::segment::evaluate::MASKS_DIR, sos_core::segment::evaluate::OVERLAYS_DIR] {
+            let Ok(entries) = std::fs::read_dir(run_dir.join(sub)) else { continue };
+            let target = dest.join(sub);
+            for entry in entries.flatten() {
+                let path = entry.path();
+                if path.extension().is_some_and(|e| e == "png") {
+                    std::fs::create_dir_all(&target).with_context(|| format!("creating {}", target.display()))?;
+                    let to = target.join(entry.file_name());
+                    std::fs::copy(&path, &to)
+                        .with_context(|| format!("copying {} to {}", path.display(), to.display()))?;
+                    copied += 1;
+                }
+            }
+        }
+        if copied == 0 {
+            continue;
+        }
+        let note = format!(
+            "The held-out masks of `{}` with `{}` (mIoU {:.3}), its worst scene.\n",
+            s.miou_worst.1, s.method, s.miou_worst.0
+        );
+        crate::commands::write_atomic(&dest.join("README.md"), &note)?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BTreeMap;
+
+    use super::*;
+    use crate::bench::report::{Row, Stat};
+
+    fn row(variant: &str, miou: f64, ari: f64, sweep: bool) -> Row {
+        let stat = |mean| Stat { mean, std: 0.0, n: 1 };
+        Row {
+            variant: variant.into(),
+            method: variant.into(),
+            sweep: sweep.then(|| ("s".to_string(), "p".to_string())),
+            seeds: vec![0],
+            metrics: BTreeMap::from([("mIoU".to_string(), stat(miou)), ("NV-ARI".to_string(), stat(ari))]),
+            seconds: BTreeMap::new(),
+            peak_rss_mib: None,
+            cores_busy: None,
+            cpu_stolen: None,
+            speedup: None,
+            problems: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn mean_and_worst_over_scenes_name_the_worst_scene() {
+        let tables = vec![
+            SceneTable { scene: "a".into(), rows: vec![row("default", 0.9, 0.8, false), row("x", 0.1, 0.1, true)] },
+            SceneTable { scene: "b".into(), rows: vec![row("default", 0.7, 0.9, false)] },
+            SceneTable { scene: "c".into(), rows: vec![row("other", 0.5, 0.5, false)] },
+        ];
+        let spread = across_scenes(&tables);
+        assert_eq!(spread.len(), 1, "`other` has one scene, sweep rows are left out: {spread:?}");
+        let s = &spread[0];
+        assert_eq!((s.method.as_str(), s.scenes), ("default", 2));
+        assert!((s.miou_mean - 0.8).abs() < 1e-12 && s.miou_worst == (0.7, "b".into()));
+        assert!((s.nv_ari_mean - 0.85).abs() < 1e-12 && s.nv_ari_worst == (0.8, "a".into()));
+        assert!(markdown(&spread).contains("| default | 2 | 0.800 | 0.700 (b) | 0.850 | 0.800 (a) |"));
+        assert!(markdown(&[]).is_empty());
+    }
+
+    #[test]
+    fn the_worst_scenes_masks_are_copied() {
+        let root = std::env::temp_dir().join(format!("sos-spread-{}", std::process::id()));
+        std::fs::remove_dir_all(&root).ok();
+        let run = root.join("work/b__default__s0");
+        std::fs::create_dir_all(run.join("masks")).unwrap();
+        std::fs::write(run.join("masks/v0.png"), b"png").unwrap();
+        std::fs::write(run.join("masks/notes.txt"), b"x").unwrap();
+        let spread = vec![AcrossScenes {
+            method: "default".into(),
+            scenes: 2,
+            miou_mean: 0.8,
+            miou_worst: (0.7, "b".into()),
+            nv_ari_mean: 0.8,
+            nv_ari_worst: (0.7, "b".into()),
+        }];
+        copy_worst_masks(&root, &spread, |scene, method| Some(root.join(format!("work/{scene}__{method}__s0"))))
+            .unwrap();
+        let dest = root.join("worst/default");
+        assert_eq!(std::fs::read(dest.join("masks/v0.png")).unwrap(), b"png");
+        assert!(!dest.join("masks/notes.txt").exists());
+        assert!(std::fs::read_to_string(dest.join("README.md")).unwrap().contains("`b`"));
+        std::fs::remove_dir_all(&root).ok();
+    }
+}

@@ -1,0 +1,53 @@
+//! A config that names only its scene runs: the field defaults to `voxel-grid`, and the
+//! settings that depend on the scene (patch stride, teacher cells, the adapter's extent) are
+//! derived from it, recorded in the session and written into its config; a set key is kept.
+
+use std::path::Path;
+
+use sos_core::config::RunConfig;
+use sos_core::train::Session;
+// Links every plugin (datasets, extractors, losses) so the config kinds resolve.
+use sos_plugins as _;
+
+fn session(text: &str) -> Session {
+    let config = RunConfig::parse(text, Path::new("derived.toml")).unwrap();
+    Session::from_config(config, &std::env::temp_dir()).unwrap()
+}
+
+fn derived<'a>(s: &'a Session, key: &str) -> Option<&'a str> {
+    s.derived.iter().find(|d| d.key == key).map(|d| d.value.as_str())
+}
+
+#[test]
+fn a_scene_alone_is_a_complete_config() {
+    let s = session("[scene]\nkind = \"synthetic\"\nwidth = 200\nheight = 150\nviews = 4\n");
+    assert_eq!(s.field_kind, "voxel-grid");
+    // The default stride 6 would span 379 px; 2 is the widest whose 64-ray patch fits 150 px.
+    assert_eq!(derived(&s, "segment.stride"), Some("2"));
+    assert_eq!(s.config.segment.stride, 2);
+    assert_eq!(derived(&s, "extractor.cell"), Some("8"));
+    let resolved = s.config.to_toml();
+    assert!(resolved.contains("kind = \"cell-stats\"") && resolved.contains("cell = 8"), "{resolved}");
+    // The resolved config reads back and derives nothing more.
+    let again = session(&resolved);
+    assert!(again.derived.is_empty(), "{:?}", again.derived);
+}
+
+#[test]
+fn teacher_cells_follow_the_patch_and_set_keys_are_kept() {
+    let base = "[scene]\nkind = \"synthetic\"\nwidth = 100\nheight = 75\nviews = 4\n";
+    let s = session(&format!("{base}[segment]\npatch_size = 32\nstride = 2\n"));
+    assert_eq!(derived(&s, "extractor.cell"), Some("4"));
+    assert_eq!(derived(&s, "segment.stride"), None, "a fitting stride is kept");
+    let s = session(&format!(
+        "{base}[segment]\npatch_size = 32\nstride = 2\n[extractor]\nkind = \"cell-stats\"\ncell = 6\n"
+    ));
+    assert_eq!(derived(&s, "extractor.cell"), None);
+    assert!(s.config.to_toml().contains("cell = 6"));
+}
+
+#[test]
+fn without_stage_two_nothing_of_it_is_derived() {
+    let s = session("[scene]\nkind = \"synthetic\"\nwidth = 100\nheight = 75\nviews = 4\n[segment]\nsteps = 0\n");
+    assert!(s.derived.is_empty(), "{:?}", s.derived);
+}

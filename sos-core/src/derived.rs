@@ -1,0 +1,89 @@
+//! Settings derived from the loaded scene where the config leaves them unset: the patch stride
+//! from the view size, the teacher's grid from the patch, the extent and `near` from the
+//! cameras (by the dataset adapters). Each is printed at the start of a run and written into
+//! the run's resolved config, so a run states what it used and any value can be pinned.
+
+use std::fmt;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::config::RunConfig;
+use crate::render::rays::PatchGrid;
+use crate::scene::Scene;
+use crate::segment::defaults;
+
+/// One setting a run chose for itself.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DerivedSetting {
+    /// Dotted config path, e.g. `segment.stride` or `scene.extent`.
+    pub key: String,
+    /// The value, as it would be written in the config (or described, for the extent).
+    pub value: String,
+    /// What it follows from, in a few words.
+    pub reason: String,
+}
+
+impl DerivedSetting {
+    /// A setting with its value and reason.
+    pub fn new(key: impl Into<String>, value: impl fmt::Display, reason: impl Into<String>) -> Self {
+        DerivedSetting { key: key.into(), value: value.to_string(), reason: reason.into() }
+    }
+}
+
+impl fmt::Display for DerivedSetting {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{} = {}  ({})", self.key, self.value, self.reason)
+    }
+}
+
+/// What a teacher's settings may follow from: the patches stage 2 shows it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PatchFacts {
+    /// Rays per patch side (the teacher's input image is this many pixels wide).
+    pub patch_size: u32,
+    /// View pixels between neighbouring rays of a patch.
+    pub stride: u32,
+}
+
+/// Fills the settings the config leaves to the scene and returns what it chose, the
+/// dataset adapter's own choices (extent, `near`) first. Deterministic: a resumed run derives the
+/// same values.
+pub fn derive_settings(config: &mut RunConfig, config_dir: &Path, scene: &Scene) -> Vec<DerivedSetting> {
+    let mut derived = config.scene.derived(config_dir, scene);
+    let seg = &mut config.segment;
+    if seg.steps == 0 {
+        return derived;
+    }
+    // The stride of the smallest training view, so every patch fits every view; mixed sizes
+    // still get a per-size notice from the sampler.
+    let smallest = scene
+        .train
+        .iter()
+        .map(|&i| &scene.views[i].camera)
+        .min_by_key(|c| c.width.min(c.height))
+        .map(|c| (c.width, c.height));
+    if let Some((width, height)) = smallest {
+        if let Some(stride) = PatchGrid::fitting_stride(width, height, seg.patch_size, seg.stride) {
+            if stride != seg.stride {
+                derived.push(DerivedSetting::new(
+                    "segment.stride",
+                    stride,
+                    format!(
+                        "the widest stride up to {} whose {}-ray patch fits the {width}x{height} views",
+                        seg.stride, seg.patch_size
+                    ),
+                ));
+                seg.stride = stride;
+            }
+        }
+    }
+    let patch = PatchFacts { patch_size: seg.patch_size, stride: seg.stride };
+    if config.extractor.is_none() {
+        config.extractor = defaults::extractor();
+    }
+    if let Some(extractor) = config.extractor.as_mut() {
+        derived.extend(extractor.derive_for(&patch));
+    }
+    derived
+}
