@@ -35,15 +35,15 @@ pub struct BlenderConfig {
     pub downscale: u32,
     /// Split used for the held-out views: `"test"` (default) or `"val"`.
     pub test_split: String,
-    /// Scene bounds `[min, max]`. Absent: derived from the capture. Cut-out images (an alpha
-    /// channel with a transparent background) give a cube around the point the cameras look
-    /// at that holds every view's opaque silhouette; opaque images give the unbounded extent
+    /// Scene bounds `[min, max]`. Absent: derived from the capture. Cut-out images (most
+    /// training views with a transparent background) give a cube around the point the cameras
+    /// look at that holds every view's opaque silhouette; opaque images give the unbounded extent
     /// around that point that the COLMAP adapter uses, so the same capture trains alike in
     /// either layout.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub aabb: Option<[Vec3; 2]>,
     /// Distance from the cameras below which nothing is sampled. Absent: 0.9 x the nearest
-    /// training camera's distance to the derived box (cut-out images), else 0.
+    /// training camera's distance to the box (given or derived from cut-out images), else 0.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub near: Option<f32>,
 }
@@ -89,7 +89,11 @@ fn derived_blender(cfg: &BlenderConfig, _root: &Path, scene: &Scene) -> Vec<Deri
         out.push(extent_setting(scene, reason));
     }
     if cfg.near.is_none() {
-        out.push(DerivedSetting::new("scene.near", format!("{:.3}", scene.near), "no `near`; from the derived extent"));
+        let reason = match scene.extent {
+            SceneExtent::Bounded { .. } => "no `near`: 0.9 x the nearest camera's distance to the box",
+            _ => "no `near`: the unbounded extent starts at the cameras",
+        };
+        out.push(DerivedSetting::new("scene.near", format!("{:.3}", scene.near), reason));
     }
     out
 }
@@ -240,21 +244,27 @@ fn silhouette(camera: &Camera, alpha: &[f32], focus: Vec3) -> Silhouette {
         let (x, y) = ((i % width) as f32 + 0.5, (i / width) as f32 + 0.5);
         min_cos = min_cos.min(dot(normalize(camera.direction(x, y)), to_focus));
     }
+    // A view that does not look at the focus says nothing about the object around it.
+    let sees_focus = camera
+        .project(focus)
+        .is_some_and(|[x, y]| (0.0..camera.width as f32).contains(&x) && (0.0..camera.height as f32).contains(&y));
     Silhouette {
         cut_out: background as f32 >= CUT_OUT_FRACTION * alpha.len() as f32,
-        angle: min_cos.is_finite().then(|| min_cos.clamp(-1.0, 1.0).acos()),
+        angle: (sees_focus && min_cos.is_finite()).then(|| min_cos.clamp(-1.0, 1.0).acos()),
     }
 }
 
-/// The derived extent and `near`: a cube around `focus` holding every cut-out view's
-/// silhouette cone where the views are cut-outs, else the unbounded extent of opaque layouts.
+/// The derived extent and `near`: where most training views are cut-outs, a cube around
+/// `focus` holding every silhouette cone of a view that looks at the focus (kept clear of the
+/// nearest camera); else the unbounded extent of opaque layouts.
 fn derived_extent(
     views: &[View],
     train: &[usize],
     silhouettes: &[Silhouette],
     focus: Vec3,
 ) -> (SceneExtent, f32) {
-    let cut_out = train.iter().any(|&i| silhouettes[i].cut_out);
+    let cut_outs = train.iter().filter(|&&i| silhouettes[i].cut_out).count();
+    let cut_out = 2 * cut_outs > train.len();
     // Each silhouette cone bounds the object; at the focus distance its radius is d tan θ.
     let half = train
         .iter()
@@ -263,11 +273,24 @@ fn derived_extent(
             Some(norm(sub(views[i].camera.origin(), focus)) * angle.tan())
         })
         .fold(0.0f32, f32::max);
+    // The box stays inside the cameras' ring: no camera inside it (the L∞ distance).
+    let clear = train
+        .iter()
+        .map(|&i| {
+            let d = sub(views[i].camera.origin(), focus);
+            d.iter().fold(0.0f32, |m, v| m.max(v.abs()))
+        })
+        .fold(f32::INFINITY, f32::min);
+    let half = (BOX_MARGIN * half).min(NEAR_FRACTION * clear);
     if !(cut_out && half > 0.0 && half.is_finite()) {
         return (extent_of(views, train, None), 0.0);
     }
-    let half = BOX_MARGIN * half;
     let (min, max) = (focus.map(|v| v - half), focus.map(|v| v + half));
+    (SceneExtent::Bounded { min, max }, near_of_box(views, train, min, max))
+}
+
+/// [`NEAR_FRACTION`] x the nearest training camera's distance to the box `[min, max]`.
+fn near_of_box(views: &[View], train: &[usize], min: Vec3, max: Vec3) -> f32 {
     let nearest = train
         .iter()
         .map(|&i| {
@@ -276,7 +299,11 @@ fn derived_extent(
             norm(outside)
         })
         .fold(f32::INFINITY, f32::min);
-    (SceneExtent::Bounded { min, max }, NEAR_FRACTION * nearest.min(1e30))
+    if nearest.is_finite() {
+        NEAR_FRACTION * nearest
+    } else {
+        0.0
+    }
 }
 
 fn norm(v: Vec3) -> f32 {
@@ -385,7 +412,7 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
         .to_string();
     let train: Vec<usize> = (0..n_train).collect();
     let (extent, derived_near) = match cfg.aabb {
-        Some([min, max]) => (SceneExtent::Bounded { min, max }, 0.0),
+        Some([min, max]) => (SceneExtent::Bounded { min, max }, near_of_box(&views, &train, min, max)),
         None => derived_extent(&views, &train, &silhouettes, focus),
     };
     let render_path = orbit_path_around(&views, &train, &extent);

@@ -156,13 +156,14 @@ struct ImageSource {
 /// The image width an unset `factor` aims at: the reference's LLFF working size (4032 / 8).
 pub const WORKING_WIDTH: f64 = 504.0;
 
-/// The downscale factor of an unset `factor`: among the folders present (`images_N/`, and
-/// `images/` as factor 1) the one whose width is nearest [`WORKING_WIDTH`], so that images
-/// already downscaled are used as they are; with none, the factor that would bring the
-/// full-resolution width nearest it.
+/// The downscale factor of an unset `factor`: among the folders present the one whose width
+/// is nearest [`WORKING_WIDTH`] in octaves (on a tie the finer one): an `images_N/` as it is,
+/// or `images/` resized by the factor nearest that width; with no folder, the factor nearest
+/// that width.
 pub fn working_factor(root: &Path, full_width: f64) -> u32 {
     let usable = full_width.is_finite() && full_width > 0.0;
-    let distance = |f: u32| if usable { (full_width / f as f64 - WORKING_WIDTH).abs() } else { f as f64 };
+    // Compared in octaves: 1008 and 252 px are equally far from 504.
+    let distance = |f: u32| if usable { (full_width / f as f64 / WORKING_WIDTH).log2().abs() } else { f as f64 };
     let mut present: Vec<u32> = std::fs::read_dir(root)
         .into_iter()
         .flatten()
@@ -171,10 +172,11 @@ pub fn working_factor(root: &Path, full_width: f64) -> u32 {
         .filter_map(|e| e.file_name().to_str()?.strip_prefix("images_")?.parse::<u32>().ok())
         .filter(|&f| f >= 1)
         .collect();
+    // `images/` can be resized to any factor: it offers the one nearest the working width.
     if root.join("images").is_dir() {
-        present.push(1);
+        present.push(if usable { (full_width / WORKING_WIDTH).round().clamp(1.0, 64.0) as u32 } else { 1 });
     }
-    match present.into_iter().min_by(|&a, &b| distance(a).total_cmp(&distance(b)).then(b.cmp(&a))) {
+    match present.into_iter().min_by(|&a, &b| distance(a).total_cmp(&distance(b)).then(a.cmp(&b))) {
         Some(f) => f,
         None if usable => (full_width / WORKING_WIDTH).round().clamp(1.0, 64.0) as u32,
         None => 1,
@@ -826,6 +828,29 @@ mod tests {
             ..cfg(&dir)
         });
         assert!(err.contains("spherify"), "{err}");
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn an_unset_factor_picks_the_folder_nearest_the_working_width() {
+        let dir = temp_dir("factor");
+        // Nothing there: the factor nearest 504 px.
+        assert_eq!(working_factor(&dir, 4032.0), 8);
+        assert_eq!(working_factor(&dir, 200.0), 1);
+        // Only full-size images: resized by that factor, not loaded at 4032 px.
+        std::fs::create_dir_all(dir.join("images")).unwrap();
+        assert_eq!(working_factor(&dir, 4032.0), 8);
+        assert_eq!(working_factor(&dir, 640.0), 1);
+        // Downscaled folders are used as they are when nearer (or as near).
+        std::fs::create_dir_all(dir.join("images_4")).unwrap();
+        std::fs::create_dir_all(dir.join("images_16")).unwrap();
+        assert_eq!(working_factor(&dir, 4032.0), 8);
+        assert_eq!(working_factor(&dir, 2016.0), 4);
+        std::fs::remove_dir_all(dir.join("images")).unwrap();
+        assert_eq!(working_factor(&dir, 4032.0), 4, "1008 and 252 px are an octave from 504: the finer");
+        std::fs::create_dir_all(dir.join("images_12")).unwrap();
+        assert_eq!(working_factor(&dir, 4032.0), 12, "336 px is nearer 504 than 1008");
+        assert_eq!(working_factor(&dir, f64::NAN), 4);
         std::fs::remove_dir_all(dir).ok();
     }
 

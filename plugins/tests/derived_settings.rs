@@ -51,3 +51,24 @@ fn without_stage_two_nothing_of_it_is_derived() {
     let s = session("[scene]\nkind = \"synthetic\"\nwidth = 100\nheight = 75\nviews = 4\n[segment]\nsteps = 0\n");
     assert!(s.derived.is_empty(), "{:?}", s.derived);
 }
+
+#[test]
+fn a_checkpoint_refuses_a_scene_with_another_extent() {
+    let dir = std::env::temp_dir().join(format!("sos-derived-resume-{}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    let text = |rig: &str| {
+        format!(
+            "name = \"resume\"\noutput_dir = \"{}\"\n[scene]\nkind = \"synthetic\"\nrig = \"{rig}\"\nwidth = 40\nheight = 30\nviews = 4\n\
+             [field]\nkind = \"voxel-grid\"\nresolution = [16, 16, 16]\ninitial_resolution = [16, 16, 16]\nupsample_at = []\n",
+            dir.display()
+        )
+    };
+    let written = session(&text("object-centric"));
+    written.save_checkpoint().unwrap();
+    let mut same = session(&text("object-centric"));
+    same.load_checkpoint(None).unwrap();
+    let mut other = session(&text("unbounded"));
+    let err = other.load_checkpoint(None).unwrap_err().to_string();
+    assert!(err.contains("extent") && err.contains("unbounded"), "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -1,7 +1,12 @@
 //! Settings derived from the loaded scene where the config leaves them unset: the patch stride
 //! from the view size, the teacher's grid from the patch, the extent and `near` from the
 //! cameras (by the dataset adapters). Each is printed at the start of a run and written into
-//! the run's resolved config, so a run states what it used and any value can be pinned.
+//! the run's resolved config, so a run states what it used; setting the key pins it (an
+//! unbounded extent has no key: set `aabb` for a box instead).
+
+/// Bumped whenever a derivation rule or its constants change, so that cached benchmark
+/// results made under the old rules are not reused (`sos bench` hashes it with each run).
+pub const DERIVATION_VERSION: u32 = 1;
 
 use std::fmt;
 use std::path::Path;
@@ -55,15 +60,11 @@ pub fn derive_settings(config: &mut RunConfig, config_dir: &Path, scene: &Scene)
     if seg.steps == 0 {
         return derived;
     }
-    // The stride of the smallest training view, so every patch fits every view; mixed sizes
-    // still get a per-size notice from the sampler.
-    let smallest = scene
-        .train
-        .iter()
-        .map(|&i| &scene.views[i].camera)
-        .min_by_key(|c| c.width.min(c.height))
-        .map(|c| (c.width, c.height));
-    if let Some((width, height)) = smallest {
+    // One view size: the stride it allows is written into the config. Views of mixed sizes
+    // keep the configured stride, which the sampler reduces per size, with a notice.
+    let sizes: Vec<(u32, u32)> =
+        scene.train.iter().map(|&i| (scene.views[i].camera.width, scene.views[i].camera.height)).collect();
+    if let Some(&(width, height)) = sizes.first().filter(|first| sizes.iter().all(|s| s == *first)) {
         if let Some(stride) = PatchGrid::fitting_stride(width, height, seg.patch_size, seg.stride) {
             if stride != seg.stride {
                 derived.push(DerivedSetting::new(

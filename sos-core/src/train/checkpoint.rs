@@ -17,6 +17,10 @@ pub struct CheckpointMeta {
     pub field_kind: String,
     /// The run's config, as TOML.
     pub config: String,
+    /// The scene's extent the field was built for (checked on load; absent in checkpoints
+    /// written before it was recorded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub extent: Option<String>,
 }
 
 /// Writes `meta` and the named binary sections atomically.
@@ -104,7 +108,7 @@ mod tests {
     fn round_trips_and_rejects_truncation() {
         let dir = std::env::temp_dir().join(format!("sos-ckpt-{}", std::process::id()));
         let path = dir.join("c.bin");
-        let meta = CheckpointMeta { step: 7, field_kind: "voxel-grid".into(), config: "x = 1".into() };
+        let meta = CheckpointMeta { step: 7, field_kind: "voxel-grid".into(), config: "x = 1".into(), extent: None };
         save(&path, &meta, &[("field", &[1, 2, 3]), ("head", &[])]).unwrap();
         let c = load(&path).unwrap();
         assert_eq!(c.meta, meta);

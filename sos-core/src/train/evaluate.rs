@@ -48,8 +48,8 @@ pub fn overfitting_warning(train_psnr: f64, test_psnr: f64) -> Option<String> {
         format!(
             "held-out PSNR {test_psnr:.1} dB is {:.1} dB below the training rays' {train_psnr:.1} dB: the field \
              explains its training views with content other views do not confirm (typically fog in front of \
-             the cameras when the scene reaches beyond its extent); remove `aabb` to use the unbounded extent, \
-             or raise `near`",
+             the cameras when the scene reaches beyond its extent): check `resolved.toml`'s extent, drop a \
+             too small `aabb` for the unbounded extent, or raise `near`",
             train_psnr - test_psnr
         )
     })

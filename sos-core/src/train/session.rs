@@ -108,7 +108,7 @@ impl Session {
 
     /// Writes the checkpoint atomically.
     pub fn save_checkpoint(&self) -> Result<(), RunError> {
-        let meta = CheckpointMeta { step: self.step, field_kind: self.field_kind.clone(), config: self.config.to_toml() };
+        let meta = self.checkpoint_meta();
         let state = self.field.save_state();
         checkpoint::save(&self.checkpoint_path(), &meta, &[("field", &state)])
     }
@@ -116,11 +116,20 @@ impl Session {
     /// Writes the checkpoint atomically with `extra` named sections after the field (e.g. the
     /// stage-2 `head`).
     pub fn save_checkpoint_with(&self, extra: &[(&str, &[u8])]) -> Result<(), RunError> {
-        let meta = CheckpointMeta { step: self.step, field_kind: self.field_kind.clone(), config: self.config.to_toml() };
+        let meta = self.checkpoint_meta();
         let state = self.field.save_state();
         let mut sections: Vec<(&str, &[u8])> = vec![("field", &state)];
         sections.extend(extra.iter().copied().filter(|(name, _)| *name != "field"));
         checkpoint::save(&self.checkpoint_path(), &meta, &sections)
+    }
+
+    fn checkpoint_meta(&self) -> CheckpointMeta {
+        CheckpointMeta {
+            step: self.step,
+            field_kind: self.field_kind.clone(),
+            config: self.config.to_toml(),
+            extent: Some(self.scene.extent.to_string()),
+        }
     }
 
     /// Restores the field from `path` (the run's own checkpoint when `None`).
@@ -138,6 +147,15 @@ impl Session {
             return Err(fail(format!(
                 "written by a `{}` field but the config asks for `{}`",
                 ckpt.meta.field_kind, self.field_kind
+            )));
+        }
+        // A field lives in its extent's coordinates: another extent (e.g. derived anew after
+        // the scene's files or the derivation rules changed) would misread every parameter.
+        if let Some(extent) = ckpt.meta.extent.as_ref().filter(|e| **e != self.scene.extent.to_string()) {
+            return Err(fail(format!(
+                "written for the extent {extent}, but this run's scene has {}; set the scene's `aabb` (or its \
+                 other keys) as that run had them, or start over without the checkpoint",
+                self.scene.extent
             )));
         }
         let state = ckpt.section("field").ok_or_else(|| fail("has no field section".into()))?;

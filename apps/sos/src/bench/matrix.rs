@@ -388,7 +388,8 @@ fn slug(label: &str) -> String {
 }
 
 /// Hash of what decides a run's result: the config (without its generated scene's machine
-/// path), the generated scene's spec and the curve sampling.
+/// path), the generated scene's spec, the curve sampling and the version of the rules that
+/// derive settings from the scene.
 fn run_hash(config: &Value, generate: Option<&Generate>, curve_points: usize) -> String {
     let mut c = config.clone();
     if generate.is_some() {
@@ -402,6 +403,8 @@ fn run_hash(config: &Value, generate: Option<&Generate>, curve_points: usize) ->
         text.push_str(&toml::to_string(&g.spec).unwrap_or_default());
     }
     text.push_str(&format!("\n# curve_points = {curve_points}\n"));
+    // Settings derived from the scene are not in the config: their rules' version is.
+    text.push_str(&format!("# derivation = {}\n", sos_core::derived::DERIVATION_VERSION));
     hash_text(&text)
 }
 
