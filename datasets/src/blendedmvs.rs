@@ -55,7 +55,8 @@ pub struct BlendedMvsConfig {
     pub layout: Layout,
     /// Original layout: views `0, k, 2k, …` are held out (default 8); 0 holds out none.
     pub hold_out_every: usize,
-    /// Scene box `[min, max]`; overrides `bbox.txt`. Default: `bbox.txt`, else unbounded.
+    /// Scene box `[min, max]`; overrides `bbox.txt`. Default: `bbox.txt` when it bounds an
+    /// object (most training cameras outside it), else unbounded around the cameras' focus.
     pub aabb: Option<[Vec3; 2]>,
     /// Distance from the cameras below which nothing is sampled (default: see the module doc).
     pub near: Option<f32>,
@@ -81,13 +82,29 @@ register_dataset!(
     derived_blendedmvs
 );
 
+/// Whether more than half of the training cameras lie inside `[min, max]`.
+fn holds_most_cameras([min, max]: [Vec3; 2], views: &[View], train: &[usize]) -> bool {
+    let inside = train
+        .iter()
+        .filter(|&&i| {
+            let o = views[i].camera.origin();
+            (0..3).all(|k| min[k] <= o[k] && o[k] <= max[k])
+        })
+        .count();
+    2 * inside > train.len()
+}
+
 /// The extent this adapter chose where the config gives no `aabb`.
-fn derived_blendedmvs(cfg: &BlendedMvsConfig, _root: &Path, scene: &sos_core::scene::Scene) -> Vec<sos_core::derived::DerivedSetting> {
+fn derived_blendedmvs(cfg: &BlendedMvsConfig, root: &Path, scene: &sos_core::scene::Scene) -> Vec<sos_core::derived::DerivedSetting> {
     match cfg.aabb {
         Some(_) => Vec::new(),
         None => {
             let reason = match scene.extent {
                 sos_core::scene::SceneExtent::Bounded { .. } => "no `aabb`: the layout's bbox.txt",
+                _ if root.join("bbox.txt").is_file() => {
+                    "no `aabb`, and bbox.txt holds the cameras (a room, not an object's box): unbounded around \
+                     the point the training cameras look at"
+                }
                 _ => NO_AABB,
             };
             vec![crate::views::extent_setting(scene, reason)]
@@ -453,6 +470,13 @@ fn load_nsvf(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetError>
         return Err(invalid(&rgb, "no training image (prefix 0_)"));
     }
     let views: Vec<View> = views.into_iter().map(|v| v.1).collect();
+    // A bbox.txt that holds the cameras bounds a room, not an object: sampled from the
+    // cameras on (`near` 0) it fills with fog in front of each one, so such a capture gets the
+    // unbounded extent around the cameras' focus, as layouts without bounds do.
+    let bbox = match (cfg.aabb, bbox) {
+        (None, Some(b)) if holds_most_cameras(b, &views, &train) => None,
+        (_, b) => b,
+    };
     let extent = extent_of(&views, &train, bbox);
     let near = cfg.near.unwrap_or(0.0);
     Ok(orbit_scene(scene_name(root, "blendedmvs"), views, train, test, extent, near))
