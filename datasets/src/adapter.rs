@@ -16,17 +16,7 @@ use crate::text::invalid;
 /// resolved against the config file's folder, as every capture-folder adapter does.
 macro_rules! register_dataset {
     ($config:ident, $kind:tt, $summary:tt, $load:path) => {
-        #[typetag::serde(name = $kind)]
-        impl sos_core::plugin::dataset::DatasetConfig for $config {
-            fn open(
-                &self,
-                config_dir: &std::path::Path,
-            ) -> Result<sos_core::scene::Scene, sos_core::plugin::dataset::DatasetError> {
-                $load(self, &config_dir.join(&self.path))
-            }
-        }
-
-        $crate::adapter::register_dataset!($config, $kind, $summary);
+        $crate::adapter::register_dataset!($config, $kind, $summary, $load, $crate::adapter::nothing_derived);
     };
     // With `derived(&config, root, &scene)`: the settings the loader chose where the config
     // left them unset.
@@ -63,6 +53,11 @@ macro_rules! register_dataset {
 }
 
 pub(crate) use register_dataset;
+
+/// The `derived` of an adapter that derives nothing (every setting is in its config).
+pub fn nothing_derived<C>(_config: &C, _root: &Path, _scene: &Scene) -> Vec<sos_core::derived::DerivedSetting> {
+    Vec::new()
+}
 
 /// Splits `n` views: every `hold_out_every`-th view from 0 is a test view (none when 0).
 pub fn hold_out_split(n: usize, hold_out_every: usize) -> (Vec<usize>, Vec<usize>) {

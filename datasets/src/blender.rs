@@ -164,16 +164,7 @@ fn read_split(root: &Path, split: &str) -> Result<(f64, Vec<FrameFile>), Dataset
                 }
             }
             // Check the rotation here, where the error can name the JSON file and frame.
-            let probe = Camera {
-                width: 1,
-                height: 1,
-                fx: 1.0,
-                fy: 1.0,
-                cx: 0.5,
-                cy: 0.5,
-                cam_to_world,
-            };
-            probe
+            frame_camera(1, 1, t.camera_angle_x, cam_to_world)
                 .validate()
                 .map_err(|e| invalid(&path, format!("frame {i}: transform_matrix: {e}")))?;
             let rel = f.file_path.trim_start_matches("./").to_string();
@@ -195,6 +186,21 @@ fn read_split(root: &Path, split: &str) -> Result<(f64, Vec<FrameFile>), Dataset
         })
         .collect::<Result<_, _>>()?;
     Ok((t.camera_angle_x, frames))
+}
+
+/// The pinhole camera of a `width x height` frame with horizontal field of view `angle`
+/// (radians), centred principal point, square pixels.
+fn frame_camera(width: usize, height: usize, angle: f64, cam_to_world: [[f32; 4]; 3]) -> Camera {
+    let focal = (0.5 * width as f64 / (0.5 * angle).tan()) as f32;
+    Camera {
+        width: width as u32,
+        height: height as u32,
+        fx: focal,
+        fy: focal,
+        cx: width as f32 / 2.0,
+        cy: height as f32 / 2.0,
+        cam_to_world,
+    }
 }
 
 /// Reads an image, compositing its alpha (if any) on `background`; also returns the alpha
@@ -350,25 +356,15 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
         .chain(test_frames.into_iter().map(|f| (angle_test, f)))
         .collect();
     let mask_root = root.join("masks");
-    let poses: Vec<Camera> = all.iter().map(|(_, f)| Camera { width: 1, height: 1, fx: 1.0, fy: 1.0, cx: 0.5, cy: 0.5, cam_to_world: f.cam_to_world }).collect();
-    let focus = camera_focus(&poses[..n_train].iter().collect::<Vec<_>>()).0;
+    // The point the training cameras look at, from their poses alone (before any image loads).
+    let train_poses: Vec<Camera> =
+        all[..n_train].iter().map(|(angle, f)| frame_camera(1, 1, *angle, f.cam_to_world)).collect();
+    let focus = camera_focus(&train_poses.iter().collect::<Vec<_>>()).0;
     let loaded: Vec<(View, Silhouette)> = all
         .par_iter()
         .map(|(angle, f)| {
             let (mut image, alpha) = load_composited(&f.image, background)?;
-            let full = {
-                let (w, h) = (image.width, image.height);
-                let focal = 0.5 * w as f64 / (0.5 * angle).tan();
-                Camera {
-                    width: w as u32,
-                    height: h as u32,
-                    fx: focal as f32,
-                    fy: focal as f32,
-                    cx: w as f32 / 2.0,
-                    cy: h as f32 / 2.0,
-                    cam_to_world: f.cam_to_world,
-                }
-            };
+            let full = frame_camera(image.width, image.height, *angle, f.cam_to_world);
             let outline = silhouette(&full, &alpha, focus);
             drop(alpha);
             let d = cfg.downscale as usize;
@@ -376,16 +372,7 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
                 image = image.resized((image.width / d).max(1), (image.height / d).max(1));
             }
             let (w, h) = (image.width, image.height);
-            let focal = 0.5 * w as f64 / (0.5 * angle).tan();
-            let camera = Camera {
-                width: w as u32,
-                height: h as u32,
-                fx: focal as f32,
-                fy: focal as f32,
-                cx: w as f32 / 2.0,
-                cy: h as f32 / 2.0,
-                cam_to_world: f.cam_to_world,
-            };
+            let camera = frame_camera(w, h, *angle, f.cam_to_world);
             camera
                 .validate()
                 .map_err(|e| invalid(&f.image, format!("pose of this frame: {e}")))?;

@@ -280,20 +280,11 @@ pub fn feature_maps(out: &VitOutput) -> Vec<FeatureMap> {
 impl FeatureExtractor for DinoVit {
     fn extract(&self, images: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError> {
         let inputs = self.preprocess.apply_all(images);
-        let mut out: Vec<Option<FeatureMap>> = vec![None; images.len()];
-        for run in preprocess::equal_size_runs(&inputs, self.batch) {
-            let Some(first) = &inputs[run.start] else {
-                out[run.start] = Some(self.empty_map());
-                continue;
-            };
-            let (h, w) = (first.height, first.width);
-            let result = self.model.forward(&preprocess::stack(&inputs[run.clone()]), run.len(), h, w);
-            for (k, map) in feature_maps(&result).into_iter().enumerate() {
-                out[run.start + k] = Some(map);
-            }
-        }
-        // The native forward cannot fail on valid inputs; invalid ones got empty maps above.
-        Ok(out.into_iter().map(|m| m.unwrap_or_else(|| self.empty_map())).collect())
+        // The native forward cannot fail on valid inputs; invalid ones get empty maps.
+        Ok(preprocess::extract_in_runs(&inputs, self.batch, || self.empty_map(), |batch, n, h, w| {
+            let result = self.model.forward(batch, n, h, w);
+            feature_maps(&result)
+        }))
     }
 
     fn identity(&self) -> String {

@@ -26,6 +26,18 @@ fn source(o: usize, k: usize, stride: usize, pad: usize, size: usize) -> Option<
     (o * stride + k).checked_sub(pad).filter(|&i| i < size)
 }
 
+/// The `[cols, rows]` transpose of a row-major `[rows, cols]` matrix: PyTorch's
+/// output-channel-major weights turned input-major for the GEMMs and channel loops here.
+fn transposed(m: &[f32], rows: usize, cols: usize) -> Vec<f32> {
+    let mut t = vec![0.0; rows * cols];
+    for r in 0..rows {
+        for c in 0..cols {
+            t[c * rows + r] = m[r * cols + c];
+        }
+    }
+    t
+}
+
 /// A dense `kernel × kernel` convolution, weights `[in·k·k, out]` (PyTorch's `[out, in, k, k]`
 /// transposed).
 #[derive(Debug, Clone, PartialEq)]
@@ -52,12 +64,7 @@ impl Conv2d {
         let cout = bias.len();
         let k = cin * kernel * kernel;
         assert_eq!(weight.len(), cout * k, "Conv2d::from_torch: weight size");
-        let mut w = vec![0.0; k * cout];
-        for o in 0..cout {
-            for i in 0..k {
-                w[i * cout + o] = weight[o * k + i];
-            }
-        }
+        let w = transposed(weight, cout, k);
         Conv2d { cin, cout, kernel, stride, weight: w, bias, relu6 }
     }
 
@@ -178,12 +185,7 @@ impl Depthwise {
         let c = bias.len();
         let taps = kernel * kernel;
         assert_eq!(weight.len(), c * taps, "Depthwise::from_torch: weight size");
-        let mut w = vec![0.0; taps * c];
-        for ch in 0..c {
-            for t in 0..taps {
-                w[t * c + ch] = weight[ch * taps + t];
-            }
-        }
+        let w = transposed(weight, c, taps);
         Depthwise { channels: c, kernel, stride, weight: w, bias, relu6 }
     }
 
