@@ -3,6 +3,7 @@
 pub mod composite;
 pub mod contraction;
 pub mod density_pass;
+pub mod distortion;
 pub mod occupancy;
 pub mod rays;
 pub mod renderer;

@@ -414,6 +414,7 @@ fn concat(parts: Vec<Samples>) -> Samples {
         positions: Vec::with_capacity(total),
         directions: Vec::with_capacity(total),
         skipped_tau: Vec::new(),
+        s: Vec::with_capacity(total),
     };
     for p in parts {
         let base = out.t.len() as u32;
@@ -422,6 +423,7 @@ fn concat(parts: Vec<Samples>) -> Samples {
         out.delta.extend(p.delta);
         out.positions.extend(p.positions);
         out.directions.extend(p.directions);
+        out.s.extend(p.s);
     }
     out
 }

@@ -29,6 +29,11 @@ pub struct Samples {
     /// Optical depth of dropped samples just before each sample (see
     /// [`crate::render::composite::RaySamples::skipped_tau`]); empty when none were dropped.
     pub skipped_tau: Vec<f32>,
+    /// Normalised position of each sample along its ray, the candidate spacing's parameter in
+    /// `[0, 1]` (uniform in distance, disparity or contracted distance by the extent), with
+    /// candidate intervals `1 / steps` wide; empty when the samples were not marched (e.g.
+    /// importance samples).
+    pub s: Vec<f32>,
 }
 
 impl Samples {
@@ -64,6 +69,9 @@ impl Samples {
                     out.delta.push(self.delta[i]);
                     out.positions.push(self.positions[i]);
                     out.directions.push(self.directions[i]);
+                    if !self.s.is_empty() {
+                        out.s.push(self.s[i]);
+                    }
                     kept.push(i as u32);
                 }
             }
@@ -236,6 +244,7 @@ pub fn march(
                 out.delta.push(delta);
                 out.positions.push(p);
                 out.directions.push(d);
+                out.s.push((i as f32 + xi) * inv_steps);
             }
         }
         out.ray_start.push(out.t.len() as u32);

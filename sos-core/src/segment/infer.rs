@@ -31,6 +31,7 @@ use crate::scene::Scene;
 use crate::segment::cleanup::{keep_seeded_regions, DepthContinuity};
 use crate::segment::head::SegHead;
 use crate::segment::head_pass;
+use crate::segment::support_plane::{on_support_planes, ViewPoints};
 use crate::train::session::Session;
 
 /// Largest angle (degrees) between a training camera's axis and the mean axis for which the
@@ -392,7 +393,14 @@ impl<'a> MaskInference<'a> {
             }
             ForegroundRule::Focus => foreground_by_votes(&km.labels, km.k, &voters),
         };
-        let mask = ViewMask::new(km.labels, km.k, fg, r.rgb);
+        let mut mask = ViewMask::new(km.labels, km.k, fg, r.rgb);
+        if masks.drop_support_planes {
+            let view = ViewPoints { points: &r.points, origin: camera.origin(), width: w, height: h };
+            let support = on_support_planes(&view, &voters, self.session.config.seed);
+            for (f, s) in mask.foreground.iter_mut().zip(support) {
+                *f &= !s;
+            }
+        }
         Ok(match masks.keep {
             KeepRegions::All => mask,
             KeepRegions::Connected => {

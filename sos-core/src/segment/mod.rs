@@ -9,5 +9,6 @@ pub mod head_pass;
 pub mod infer;
 pub mod patches;
 pub mod store;
+pub mod support_plane;
 pub mod teacher;
 pub mod train;

@@ -2,6 +2,7 @@
 
 pub mod checkpoint;
 pub mod evaluate;
+pub mod face_pileup;
 pub mod memory;
 pub mod observer;
 pub mod photometric;

@@ -9,9 +9,13 @@ use crate::error::RunError;
 use crate::render::composite::{RayColor, RayGrad};
 use crate::render::rays::RayBatch;
 use crate::render::renderer::render;
+use crate::train::face_pileup::{face_pileup_warning, FaceFigures, FaceMonitor};
 use crate::train::observer::{TrainObserver, Unobserved};
 use crate::train::progress::log_line;
 use crate::train::session::Session;
+
+/// Stage-1 steps between looks at where rays end on a box's faces.
+const FACE_CHECK_EVERY: usize = 4;
 
 /// Consecutive non-finite losses after which training stops.
 const MAX_BAD_STEPS: usize = 20;
@@ -27,6 +31,9 @@ pub struct StepStats {
     pub samples_per_ray: f64,
     /// Mean opacity of the batch's rays.
     pub opacity: f64,
+    /// Rays ending on a bounded extent's faces, and how badly they fit (`None` for other
+    /// extents).
+    pub faces: Option<FaceFigures>,
 }
 
 /// MSE over a batch's rays and the per-ray gradients (`scale · (c − target)` per channel), with
@@ -103,6 +110,8 @@ pub fn train_photometric_observed(
     let mut last = StepStats::default();
     let mut bad_steps = 0;
     let mut smoothed_psnr = 0.0;
+    let mut faces = FaceMonitor::default();
+    let mut warned_faces = false;
     while session.step < total {
         if session.field.begin_step(session.step, total) {
             session.refresh_occupancy(0.0);
@@ -143,6 +152,24 @@ pub fn train_photometric_observed(
                     }
                 }
             }
+        }
+        // mip-NeRF 360's distortion loss over the marched samples' normalised positions.
+        let distortion = session.config.train.distortion_weight / n_rays as f32;
+        if distortion > 0.0 && r.samples.s.len() == r.samples.len() {
+            let width = 1.0 / options.march.steps.max(1) as f32;
+            for ray in 0..r.samples.n_rays() {
+                let range = r.samples.range(ray);
+                crate::render::distortion::distortion(
+                    &r.weights[range.clone()],
+                    &r.samples.s[range.clone()],
+                    width,
+                    distortion,
+                    &mut g_weight[range],
+                );
+            }
+        }
+        if session.step.is_multiple_of(FACE_CHECK_EVERY) {
+            faces.observe(&session.contraction, &r, &targets);
         }
         let (mse, grads) = ray_mse_grads(&r.colors, &targets, scale, |ray| &g_weight[r.samples.range(ray)]);
         // The coarse (proposal) network of a hierarchical field gets its own MSE, as in NeRF.
@@ -219,7 +246,15 @@ pub fn train_photometric_observed(
             psnr: crate::metrics::psnr_from_mse(mse),
             samples_per_ray: r.samples.len() as f64 / n_rays as f64,
             opacity: r.colors.iter().map(|c| c.acc as f64).sum::<f64>() / n_rays as f64,
+            faces: faces.figures(),
         };
+        // Once the field has settled, say so while the run can still be stopped.
+        if !warned_faces && 2 * session.step >= total {
+            if let Some(w) = last.faces.as_ref().and_then(face_pileup_warning) {
+                log_line(&bar, format!("warning: stage 1 step {}: {w}", session.step));
+                warned_faces = true;
+            }
+        }
         smoothed_psnr = if smoothed_psnr == 0.0 { last.psnr } else { 0.9 * smoothed_psnr + 0.1 * last.psnr };
         let rays_per_s = (session.step as f64 * n_rays as f64) / started.elapsed().as_secs_f64().max(1e-9);
         bar.set_message(format!(
@@ -228,8 +263,11 @@ pub fn train_photometric_observed(
         ));
         bar.set_position(session.step as u64);
         if !show_progress && (session.step % (total / 10).max(1) == 0 || session.step == total) {
+            let faces = last.faces.map_or(String::new(), |f| {
+                format!(", {:.1}% of rays end on a face ({:.1}x the error)", 100.0 * f.ray_fraction, f.error_ratio)
+            });
             eprintln!(
-                "stage 1 step {}/{}: loss {:.5} psnr {:.2} dB, opacity {:.3}, {:.0} rays/s, {:.0} samples/ray, {:.0} s",
+                "stage 1 step {}/{}: loss {:.5} psnr {:.2} dB, opacity {:.3}, {:.0} rays/s, {:.0} samples/ray{faces}, {:.0} s",
                 session.step, total, mse, smoothed_psnr, last.opacity, rays_per_s, last.samples_per_ray,
                 started.elapsed().as_secs_f64()
             );

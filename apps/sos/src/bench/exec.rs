@@ -12,6 +12,7 @@ use sos_core::segment::infer::MaskInference;
 use sos_core::segment::store::{save_with_head, HeadMeta};
 use sos_core::segment::train::{train_segmentation_observed, SegStepStats, Segmenter};
 use sos_core::train::evaluate::{evaluate_views, overfitting_warning};
+use sos_core::train::face_pileup::face_pileup_warning;
 use sos_core::train::observer::TrainObserver;
 use sos_core::train::photometric::{train_photometric_observed, StepStats};
 use sos_core::train::Session;
@@ -78,6 +79,7 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
             mask_metrics(&eval, &mut notes)
         }
     };
+    notes.extend(stage1_stats.faces.as_ref().and_then(face_pileup_warning));
     if let Some(w) = metrics.psnr.and_then(|p| overfitting_warning(stage1_stats.psnr, p)) {
         notes.push(w);
     }

@@ -7,7 +7,8 @@ use std::time::Instant;
 use anyhow::Context;
 use sos_core::segment::train::Segmenter;
 use sos_core::train::evaluate::{evaluate_views, overfitting_warning, ImageEval};
-use sos_core::train::photometric::train_photometric;
+use sos_core::train::face_pileup::face_pileup_warning;
+use sos_core::train::photometric::{train_photometric, StepStats};
 use sos_core::train::Session;
 
 use super::stage2;
@@ -47,13 +48,16 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
         "timing": { "stage1_seconds": train_seconds },
         "derived": session.derived,
     });
+    if let Some(faces) = stats.faces {
+        report["stage1_faces"] = serde_json::to_value(faces)?;
+    }
     match segmenter {
         None => {
             let eval_started = Instant::now();
             let eval = evaluate_views(&session, session.config.render.test_views)?;
             report["timing"]["stage1_eval_seconds"] = eval_started.elapsed().as_secs_f64().into();
             print_image_eval(&eval);
-            warn_if_overfitting(stats.psnr, &eval, &mut report);
+            record_warnings(&stats, &eval, &mut report);
             println!("render speed {:.0} rays/s; outputs in {}", eval.render_rays_per_second, session.run_dir.display());
             report["test"] = serde_json::to_value(&eval)?;
         }
@@ -68,7 +72,7 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
             let rays = session.scene.test.iter().map(|&i| camera(i).width as usize * camera(i).height as usize).sum();
             let eval = ImageEval::from_report(&masks.image, rays, masks.seconds);
             print_image_eval(&eval);
-            warn_if_overfitting(stats.psnr, &eval, &mut report);
+            record_warnings(&stats, &eval, &mut report);
             report["test"] = serde_json::to_value(&eval)?;
             report["stage2"] = stage2::report(&session, s2.seg.step, Some(s2.seconds), Some(&s2.stats), &masks);
             report["timing"]["stage2_seconds"] = s2.seconds.into();
@@ -81,12 +85,21 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Prints (and records in the metrics) a warning when the held-out views are far worse than
-/// the training rays.
-fn warn_if_overfitting(train_psnr: f64, eval: &ImageEval, report: &mut serde_json::Value) {
-    if let Some(w) = overfitting_warning(train_psnr, eval.psnr) {
+/// Prints (and records in the metrics) warnings about stage 1: content cut off by the box,
+/// held-out views far worse than the training rays.
+fn record_warnings(stats: &StepStats, eval: &ImageEval, report: &mut serde_json::Value) {
+    let warnings: Vec<String> = stats
+        .faces
+        .as_ref()
+        .and_then(face_pileup_warning)
+        .into_iter()
+        .chain(overfitting_warning(stats.psnr, eval.psnr))
+        .collect();
+    for w in &warnings {
         eprintln!("warning: {w}");
-        report["warnings"] = serde_json::json!([w]);
+    }
+    if !warnings.is_empty() {
+        report["warnings"] = serde_json::json!(warnings);
     }
 }
 
