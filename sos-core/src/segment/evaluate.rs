@@ -65,9 +65,12 @@ pub const MASKS_DIR: &str = "masks";
 pub const OVERLAYS_DIR: &str = "overlays";
 /// Rendered colour of held-out views.
 pub const TEST_DIR: &str = "test";
+/// What each held-out view's mask was decided from ([`crate::segment::diagnostics`]).
+pub const EVIDENCE_DIR: &str = "mask_evidence";
 
 /// Writes `<root>/<masks>/<name>.png` (foreground 255), `<root>/<overlays>/<name>.png` and,
-/// when `images` is given, `<root>/<images>/<name>.png`.
+/// when `images` is given, `<root>/<images>/<name>.png` and the mask's evidence image (when it
+/// has one) as `<root>/`[`EVIDENCE_DIR`]`/<name>.png`.
 pub fn write_view_pngs(
     mask: &ViewMask,
     root: &Path,
@@ -79,6 +82,9 @@ pub fn write_view_pngs(
     mask.overlay().save_png(&root.join(dirs.1).join(&file))?;
     if let Some(images) = dirs.2 {
         mask.rgb.save_png(&root.join(images).join(&file))?;
+        if let Some(evidence) = &mask.evidence {
+            evidence.save_png(&root.join(EVIDENCE_DIR).join(&file))?;
+        }
     }
     Ok(())
 }

@@ -29,6 +29,7 @@ use crate::render::rays::RayBatch;
 use crate::render::renderer::{render_inference, ExtraChannels};
 use crate::scene::Scene;
 use crate::segment::cleanup::{keep_seeded_regions, DepthContinuity};
+use crate::segment::diagnostics::{evidence_image, MaskEvidence};
 use crate::segment::head::SegHead;
 use crate::segment::head_pass;
 use crate::segment::support_plane::{on_support_planes, ViewPoints};
@@ -178,8 +179,11 @@ pub fn foreground_by_saliency(labels: &[u32], k: usize, saliency: &[f32]) -> usi
     pick(&cluster_means(labels, k, |i| Some(saliency[i] as f64)), |a, b| a > b)
 }
 
-/// Fraction of a view's pixels, nearest the focus point, that vote for the foreground cluster.
-pub const FOCUS_VOTE_FRACTION: f64 = 0.05;
+/// Fraction of a view's pixels, nearest the focus point, that vote for the foreground cluster,
+/// decide whether a plane is the object's own and seed the regions `keep = "connected"` keeps:
+/// small, so that a thin or small object (a pole, a toy in a room's corner) still holds all of
+/// them rather than the ground around it.
+pub const FOCUS_VOTE_FRACTION: f64 = 0.01;
 
 /// Indices of the pixels whose points lie nearest `focus`: the nearest
 /// [`FOCUS_VOTE_FRACTION`] of the pixels with a point (at least one; none without points).
@@ -293,13 +297,16 @@ pub struct ViewMask {
     pub foreground: Vec<bool>,
     /// The rendered colour.
     pub rgb: RgbImage,
+    /// What the mask was decided from ([`crate::segment::diagnostics`]), when inferred by
+    /// [`MaskInference::segment`].
+    pub evidence: Option<RgbImage>,
 }
 
 impl ViewMask {
     /// Builds a mask from cluster labels and the chosen cluster.
     pub fn new(labels: Vec<u32>, clusters: usize, foreground_cluster: usize, rgb: RgbImage) -> ViewMask {
         let foreground = labels.iter().map(|&l| l as usize == foreground_cluster).collect();
-        ViewMask { labels, clusters, foreground_cluster, foreground, rgb }
+        ViewMask { labels, clusters, foreground_cluster, foreground, rgb, evidence: None }
     }
 
     /// Keeps the foreground regions holding a seed pixel ([`keep_seeded_regions`]), cut
@@ -308,7 +315,7 @@ impl ViewMask {
     pub fn keep_regions_of(self, seeds: &[usize], depth: Option<DepthContinuity>) -> ViewMask {
         let foreground = keep_seeded_regions(&self.foreground, self.rgb.width, self.rgb.height, seeds, depth);
         let labels = foreground.iter().map(|&f| u32::from(f)).collect();
-        ViewMask { labels, clusters: 2, foreground_cluster: 1, foreground, rgb: self.rgb }
+        ViewMask { labels, clusters: 2, foreground_cluster: 1, foreground, rgb: self.rgb, evidence: self.evidence }
     }
 
     /// The binary mask, foreground 1 (written as 255).
@@ -384,7 +391,8 @@ impl<'a> MaskInference<'a> {
         let (w, h) = (r.rgb.width, r.rgb.height);
         // Nothing rendered in the centre: fall back to where the cameras look.
         let focus = self.focus.point_for(&r.depth, w, h).unwrap_or_else(|| self.session.scene.focus_point());
-        // Computed once: the `focus` rule votes with them and `keep = "connected"` seeds from them.
+        // Computed once: the `focus` rule votes with them, the support-plane test asks whether a
+        // plane holds them, and `keep = "connected"` seeds from them.
         let voters = focus_voters(&r.points, focus);
         let fg = match masks.foreground {
             ForegroundRule::Saliency => {
@@ -394,13 +402,24 @@ impl<'a> MaskInference<'a> {
             ForegroundRule::Focus => foreground_by_votes(&km.labels, km.k, &voters),
         };
         let mut mask = ViewMask::new(km.labels, km.k, fg, r.rgb);
-        if masks.drop_support_planes {
+        let support = masks.drop_support_planes.then(|| {
             let view = ViewPoints { points: &r.points, origin: camera.origin(), width: w, height: h };
-            let support = on_support_planes(&view, &voters, self.session.config.seed);
-            for (f, s) in mask.foreground.iter_mut().zip(support) {
+            on_support_planes(&view, &voters, self.session.config.seed)
+        });
+        if let Some(support) = &support {
+            for (f, &s) in mask.foreground.iter_mut().zip(support) {
                 *f &= !s;
             }
         }
+        let hit: Vec<bool> = r.points.iter().map(Option::is_some).collect();
+        let evidence = MaskEvidence {
+            labels: &mask.labels,
+            foreground_cluster: fg,
+            support: support.as_deref(),
+            voters: &voters,
+            hit: &hit,
+        };
+        mask.evidence = Some(evidence_image(&evidence, w, h));
         Ok(match masks.keep {
             KeepRegions::All => mask,
             KeepRegions::Connected => {

@@ -3,6 +3,7 @@
 
 pub mod cleanup;
 pub mod defaults;
+pub mod diagnostics;
 pub mod evaluate;
 pub mod head;
 pub mod head_pass;

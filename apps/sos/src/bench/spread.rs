@@ -72,7 +72,8 @@ pub fn markdown(spread: &[AcrossScenes]) -> String {
     }
     let mut md = String::from(
         "\n## Across scenes\n\nPer-scene means, then the mean and the worst over scenes. The worst mIoU scene's \
-         held-out masks and overlays are in `worst/<method>/`.\n\n\
+         held-out masks, overlays and mask evidence (clusters, support planes, focus voters) are in \
+         `worst/<method>/`.\n\n\
          | method | scenes | mIoU mean | mIoU worst | NV-ARI mean | NV-ARI worst |\n|---|---|---|---|---|---|\n",
     );
     for s in spread {
@@ -106,7 +107,8 @@ pub fn copy_worst_masks(
             std::fs::remove_dir_all(&dest).with_context(|| format!("clearing {}", dest.display()))?;
         }
         let mut copied = 0;
-        for sub in [sos_core::segment::evaluate::MASKS_DIR, sos_core::segment::evaluate::OVERLAYS_DIR] {
+        use sos_core::segment::evaluate::{EVIDENCE_DIR, MASKS_DIR, OVERLAYS_DIR};
+        for sub in [MASKS_DIR, OVERLAYS_DIR, EVIDENCE_DIR] {
             let Ok(entries) = std::fs::read_dir(run_dir.join(sub)) else { continue };
             let target = dest.join(sub);
             for entry in entries.flatten() {
