@@ -4,6 +4,7 @@
 //! a glance whether a bad mask comes from the clustering, the foreground vote or the rendered
 //! geometry (a support plane that was not found).
 
+use crate::camera::Vec3;
 use crate::image::RgbImage;
 
 /// Colours of the clusters, in label order (repeating beyond eight clusters).
@@ -34,15 +35,15 @@ pub struct MaskEvidence<'a> {
     pub support: Option<&'a [bool]>,
     /// Pixels nearest the focus, which voted for the foreground cluster.
     pub voters: &'a [usize],
-    /// Whether each pixel's ray hit anything.
-    pub hit: &'a [bool],
+    /// Rendered 3D point of each pixel, `None` for empty rays.
+    pub points: &'a [Option<Vec3>],
 }
 
 /// Draws the evidence as a `width x height` image (see the module documentation).
 pub fn evidence_image(evidence: &MaskEvidence, width: usize, height: usize) -> RgbImage {
     let mut out = RgbImage::new(width, height);
     for (i, px) in out.data.chunks_exact_mut(3).enumerate().take(evidence.labels.len()) {
-        if !evidence.hit.get(i).copied().unwrap_or(false) {
+        if !evidence.points.get(i).is_some_and(Option::is_some) {
             continue;
         }
         let label = evidence.labels[i] as usize;
@@ -73,9 +74,14 @@ mod tests {
         // an empty ray; pixel 0 also votes.
         let labels = [1, 0, 0, 1, 1];
         let support = [false, false, true, false, false];
-        let hit = [true, true, true, false, true];
-        let evidence =
-            MaskEvidence { labels: &labels, foreground_cluster: 1, support: Some(&support), voters: &[0], hit: &hit };
+        let points = [Some([0.0; 3]), Some([0.0; 3]), Some([0.0; 3]), None, Some([0.0; 3])];
+        let evidence = MaskEvidence {
+            labels: &labels,
+            foreground_cluster: 1,
+            support: Some(&support),
+            voters: &[0],
+            points: &points,
+        };
         let img = evidence_image(&evidence, 5, 1);
         assert_eq!(img.pixel(0, 0), [1.0; 3], "a voter is white");
         assert_eq!(img.pixel(3, 0), [0.0; 3], "an empty ray is black");

@@ -68,23 +68,33 @@ pub const TEST_DIR: &str = "test";
 /// What each held-out view's mask was decided from ([`crate::segment::diagnostics`]).
 pub const EVIDENCE_DIR: &str = "mask_evidence";
 
-/// Writes `<root>/<masks>/<name>.png` (foreground 255), `<root>/<overlays>/<name>.png` and,
-/// when `images` is given, `<root>/<images>/<name>.png` and the mask's evidence image (when it
-/// has one) as `<root>/`[`EVIDENCE_DIR`]`/<name>.png`.
-pub fn write_view_pngs(
-    mask: &ViewMask,
-    root: &Path,
-    dirs: (&str, &str, Option<&str>),
-    name: &str,
-) -> Result<(), RunError> {
+/// Where one view's PNGs go, as folders under the run folder.
+#[derive(Debug, Clone, Copy)]
+pub struct ViewFolders<'a> {
+    /// The binary mask (foreground 255).
+    pub masks: &'a str,
+    /// The mask drawn over the render.
+    pub overlays: &'a str,
+    /// The rendered colour, when written.
+    pub images: Option<&'a str>,
+    /// The mask's evidence image, when written (and the mask has one).
+    pub evidence: Option<&'a str>,
+}
+
+/// The folders of held-out views.
+pub const HELD_OUT_FOLDERS: ViewFolders<'static> =
+    ViewFolders { masks: MASKS_DIR, overlays: OVERLAYS_DIR, images: Some(TEST_DIR), evidence: Some(EVIDENCE_DIR) };
+
+/// Writes `<root>/<folder>/<name>.png` for each folder of `folders`.
+pub fn write_view_pngs(mask: &ViewMask, root: &Path, folders: ViewFolders, name: &str) -> Result<(), RunError> {
     let file = format!("{name}.png");
-    mask.mask_image().save_png(&root.join(dirs.0).join(&file))?;
-    mask.overlay().save_png(&root.join(dirs.1).join(&file))?;
-    if let Some(images) = dirs.2 {
+    mask.mask_image().save_png(&root.join(folders.masks).join(&file))?;
+    mask.overlay().save_png(&root.join(folders.overlays).join(&file))?;
+    if let Some(images) = folders.images {
         mask.rgb.save_png(&root.join(images).join(&file))?;
-        if let Some(evidence) = &mask.evidence {
-            evidence.save_png(&root.join(EVIDENCE_DIR).join(&file))?;
-        }
+    }
+    if let (Some(dir), Some(evidence)) = (folders.evidence, &mask.evidence) {
+        evidence.save_png(&root.join(dir).join(&file))?;
     }
     Ok(())
 }
@@ -104,7 +114,7 @@ pub fn evaluate_masks(session: &Session, inference: &MaskInference, write: bool)
         let view = &session.scene.views[i];
         let mask = inference.segment(&view.camera, &view.name)?;
         if write {
-            write_view_pngs(&mask, &session.run_dir, (MASKS_DIR, OVERLAYS_DIR, Some(TEST_DIR)), &view.name)?;
+            write_view_pngs(&mask, &session.run_dir, HELD_OUT_FOLDERS, &view.name)?;
         }
         out.views.push(measure_view(session, view, &mask, &mut out.segmentation, &mut out.image)?);
     }

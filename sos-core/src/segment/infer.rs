@@ -411,13 +411,12 @@ impl<'a> MaskInference<'a> {
                 *f &= !s;
             }
         }
-        let hit: Vec<bool> = r.points.iter().map(Option::is_some).collect();
         let evidence = MaskEvidence {
             labels: &mask.labels,
             foreground_cluster: fg,
             support: support.as_deref(),
             voters: &voters,
-            hit: &hit,
+            points: &r.points,
         };
         mask.evidence = Some(evidence_image(&evidence, w, h));
         Ok(match masks.keep {

@@ -4,7 +4,7 @@
 use std::path::Path;
 
 use indicatif::ProgressBar;
-use sos_core::segment::evaluate::write_view_pngs;
+use sos_core::segment::evaluate::{write_view_pngs, ViewFolders};
 use sos_core::segment::infer::{saliency_extractor, MaskInference};
 use sos_core::segment::store::load_with_head;
 use sos_core::train::evaluate::evaluate_views;
@@ -40,7 +40,9 @@ pub fn run(config: &Path, checkpoint: Option<&Path>) -> anyhow::Result<()> {
             // One render gives colour and logits.
             Some(inf) => {
                 let mask = inf.segment(cam, &name)?;
-                write_view_pngs(&mask, &session.run_dir, ("path_masks", "path_overlays", Some("path")), &name)?;
+                let folders =
+                    ViewFolders { masks: "path_masks", overlays: "path_overlays", images: Some("path"), evidence: None };
+                write_view_pngs(&mask, &session.run_dir, folders, &name)?;
             }
             None => {
                 let (img, _) = session.render_view(cam);
