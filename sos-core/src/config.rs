@@ -177,6 +177,27 @@ pub struct MaskConfig {
     /// Return the pixels on large planes the object stands on or in front of (the ground, a
     /// wall: [`crate::segment::support_plane`]) to the background before regions are kept.
     pub drop_support_planes: bool,
+    /// Times the foreground cluster may be split again when the mask covers more than
+    /// `max_border_share` of the image border ([`crate::segment::border_split`]); 0 = never.
+    pub border_splits: usize,
+    /// Largest share of the image border's pixels a mask may cover before its cluster is split
+    /// again (objects rarely run along most of the frame's edge; ground, walls and sky do).
+    pub max_border_share: f32,
+    /// Which rendered distance places a pixel's 3D point for the mask rules (focus votes,
+    /// support planes, depth continuity).
+    pub depth: MaskDepth,
+}
+
+/// The rendered distance the mask rules place pixels at.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MaskDepth {
+    /// Where the ray's opacity reaches one half: the visible surface, which semi-transparent
+    /// fog in front of it does not move.
+    Median,
+    /// The compositing weights' expected distance `Σ w t` (the reference's depth map), which
+    /// fog and partly opaque rays pull towards the camera.
+    Expected,
 }
 
 /// Which connected regions of the foreground cluster are kept in the mask.
@@ -205,6 +226,11 @@ impl Default for MaskConfig {
             // cleanup").
             max_depth_jump: 0.05,
             drop_support_planes: true,
+            border_splits: 2,
+            // An object running along one whole long side of a 4:3 frame covers 0.29 of its
+            // border; a mask along more than that has background in it.
+            max_border_share: 0.3,
+            depth: MaskDepth::Median,
         }
     }
 }
@@ -384,6 +410,12 @@ impl RunConfig {
         }
         if !(self.masks.max_depth_jump >= 0.0 && self.masks.max_depth_jump.is_finite()) {
             return Err(invalid("masks.max_depth_jump", "must be zero (off) or positive, e.g. 0.1"));
+        }
+        if self.masks.border_splits > 8 {
+            return Err(invalid("masks.border_splits", "must be at most 8"));
+        }
+        if !(self.masks.max_border_share > 0.0 && self.masks.max_border_share <= 1.0) {
+            return Err(invalid("masks.max_border_share", "must be in (0, 1], e.g. 0.3"));
         }
         for (i, l) in self.loss.iter().enumerate() {
             if !(l.weight >= 0.0 && l.weight.is_finite()) {

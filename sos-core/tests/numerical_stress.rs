@@ -312,7 +312,8 @@ fn a_ray_with_no_samples_is_empty() {
         RayColor {
             rgb: [0.0; 3],
             depth: EMPTY_RAY_DEPTH,
-            acc: 0.0
+            acc: 0.0,
+            median_depth: EMPTY_RAY_DEPTH,
         }
     );
     assert_eq!(r.extra, [0.0; D_EXTRA]);

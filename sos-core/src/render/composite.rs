@@ -45,7 +45,15 @@ pub struct RayColor {
     pub depth: f32,
     /// Opacity `Σ w`.
     pub acc: f32,
+    /// Distance at which the accumulated opacity reaches [`MEDIAN_OPACITY`] (interpolated
+    /// between the two samples it is reached between): the visible surface, which thin fog in front of it does not pull
+    /// towards the camera as it does `depth`. `depth / acc` for a ray that never gets that
+    /// opaque, [`EMPTY_RAY_DEPTH`] for an empty one.
+    pub median_depth: f32,
 }
+
+/// Accumulated opacity at which [`RayColor::median_depth`] is read.
+pub const MEDIAN_OPACITY: f32 = 0.5;
 
 impl RayColor {
     /// The expected 3D point `Σ w_k x_k = acc · origin + depth · direction` of a ray with a
@@ -84,6 +92,7 @@ pub fn composite(s: &RaySamples, w: &mut [f32], extra_out: &mut [f32]) -> RayCol
     debug_assert_eq!(s.extra.len(), n * s.d_extra);
     weights(s.sigma, s.delta, s.skipped_tau, w);
     let mut out = RayColor::default();
+    let mut median = None;
     extra_out.fill(0.0);
     for k in 0..n {
         let wk = w[k];
@@ -91,13 +100,25 @@ pub fn composite(s: &RaySamples, w: &mut [f32], extra_out: &mut [f32]) -> RayCol
             out.rgb[c] += wk * s.rgb[k][c];
         }
         out.depth += wk * s.t[k];
+        let before = out.acc;
         out.acc += wk;
+        if median.is_none() && out.acc >= MEDIAN_OPACITY {
+            // Linear in the opacity between the previous sample and this one: samples are
+            // centimetres apart, as coarse as the planes the mask rules look for.
+            median = Some(match k {
+                0 => s.t[0],
+                _ => s.t[k - 1] + (MEDIAN_OPACITY - before) / wk * (s.t[k] - s.t[k - 1]),
+            });
+        }
         for (o, e) in extra_out.iter_mut().zip(&s.extra[k * s.d_extra..(k + 1) * s.d_extra]) {
             *o += wk * e;
         }
     }
     if out.acc <= EMPTY_RAY_ACC {
         out.depth = EMPTY_RAY_DEPTH;
+        out.median_depth = EMPTY_RAY_DEPTH;
+    } else {
+        out.median_depth = median.unwrap_or(out.depth / out.acc);
     }
     out
 }
@@ -319,5 +340,31 @@ mod tests {
             let fd = (loss(&sigma, &rgb, &p) - loss(&sigma, &rgb, &m)) / (2.0 * h as f64);
             assert!((fd - ge[2 * k + 1] as f64).abs() < 2e-3, "extra {k}");
         }
+    }
+
+    #[test]
+    fn the_median_depth_is_the_surface_behind_thin_fog() {
+        // Thin fog at t = 1 (opacity 0.2), an opaque surface at t = 3: the expected depth is
+        // pulled towards the camera, the median lies between the last fog sample and the
+        // surface, where the opacity crosses one half.
+        let t = [1.0, 2.0, 3.0, 4.0];
+        let delta = [1.0; 4];
+        let sigma = [-(0.8f32).ln(), 0.0, 50.0, 50.0];
+        let rgb = [[0.5; 3]; 4];
+        let s = RaySamples { sigma: &sigma, delta: &delta, t: &t, rgb: &rgb, extra: &[], d_extra: 0, skipped_tau: &[] };
+        let mut w = [0.0; 4];
+        let o = composite(&s, &mut w, &mut []);
+        assert!((o.acc - 1.0).abs() < 1e-5);
+        assert!(o.depth < 2.7, "expected depth {}", o.depth);
+        // Opacity 0.2 up to t = 2, then 0.8 more at t = 3: half is reached 0.3 / 0.8 of the way.
+        assert!((o.median_depth - (2.0 + 0.3 / 0.8)).abs() < 1e-4, "median depth {}", o.median_depth);
+        // A ray that never gets half opaque: the normalised expected depth.
+        let faint = [0.1, 0.0, 0.0, 0.0];
+        let s = RaySamples { sigma: &faint, ..s };
+        let o = composite(&s, &mut w, &mut []);
+        assert!((o.median_depth - 1.0).abs() < 1e-5);
+        // An empty ray: the sentinel.
+        let s = RaySamples { sigma: &[0.0; 4], ..s };
+        assert_eq!(composite(&s, &mut w, &mut []).median_depth, EMPTY_RAY_DEPTH);
     }
 }

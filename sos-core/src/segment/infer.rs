@@ -16,10 +16,12 @@
 //! With more than two clusters the foreground is the single chosen cluster.
 //!
 //! `masks.keep = "connected"` (the default) then drops the regions of the foreground cluster
-//! that hold none of the `focus` rule's voting pixels ([`crate::segment::cleanup`]).
+//! that hold none of the `focus` rule's voting pixels ([`crate::segment::cleanup`]). A mask
+//! that still covers most of the image border has its cluster split again
+//! ([`crate::segment::border_split`]).
 
 use crate::camera::{axpy, dot, normalize, sub, Camera, Vec3};
-use crate::config::{ForegroundRule, KeepRegions, MaskConfig};
+use crate::config::{ForegroundRule, KeepRegions, MaskConfig, MaskDepth};
 use crate::error::{ConfigError, RunError};
 use crate::image::{GrayImage, RgbImage};
 use crate::kmeans::{kmeans, KMeansConfig, KMeansResult};
@@ -28,6 +30,7 @@ use crate::render::composite::EMPTY_RAY_DEPTH;
 use crate::render::rays::RayBatch;
 use crate::render::renderer::{render_inference, ExtraChannels};
 use crate::scene::Scene;
+use crate::segment::border_split::{border_share, split_cluster};
 use crate::segment::cleanup::{keep_seeded_regions, DepthContinuity};
 use crate::segment::diagnostics::{evidence_image, MaskEvidence};
 use crate::segment::head::SegHead;
@@ -52,7 +55,9 @@ const OVERLAY_ALPHA: f32 = 0.5;
 pub struct RenderedLogits {
     /// Rendered colour.
     pub rgb: RgbImage,
-    /// Expected distance per pixel (`EMPTY_RAY_DEPTH` for empty rays), row-major.
+    /// Rendered distance per pixel as `masks.depth` chooses it (by default the visible
+    /// surface, [`crate::render::composite::RayColor::median_depth`]), `EMPTY_RAY_DEPTH` for
+    /// empty rays; row-major.
     pub depth: Vec<f32>,
     /// Composited raw logits, `[H·W, channels]` row-major.
     pub logits: Vec<f32>,
@@ -85,8 +90,12 @@ pub fn render_logits(session: &Session, head: &SegHead, camera: &Camera) -> Rend
     let mut points = Vec::with_capacity(colors.len());
     for (i, c) in colors.iter().enumerate() {
         rgb.data[i * 3..i * 3 + 3].copy_from_slice(&c.rgb);
-        depth.push(c.depth);
-        points.push(is_hit(c.depth).then(|| axpy(rays.origins[i], c.depth, rays.directions[i])));
+        let d = match session.config.masks.depth {
+            MaskDepth::Median => c.median_depth,
+            MaskDepth::Expected => c.depth,
+        };
+        depth.push(d);
+        points.push(is_hit(d).then(|| axpy(rays.origins[i], d, rays.directions[i])));
     }
     RenderedLogits { rgb, depth, logits, channels: d, points }
 }
@@ -309,15 +318,6 @@ impl ViewMask {
         ViewMask { labels, clusters, foreground_cluster, foreground, rgb, evidence: None }
     }
 
-    /// Keeps the foreground regions holding a seed pixel ([`keep_seeded_regions`]), cut
-    /// where `depth` jumps when given; the labels become the two regions (foreground 1,
-    /// background 0).
-    pub fn keep_regions_of(self, seeds: &[usize], depth: Option<DepthContinuity>) -> ViewMask {
-        let foreground = keep_seeded_regions(&self.foreground, self.rgb.width, self.rgb.height, seeds, depth);
-        let labels = foreground.iter().map(|&f| u32::from(f)).collect();
-        ViewMask { labels, clusters: 2, foreground_cluster: 1, foreground, rgb: self.rgb, evidence: self.evidence }
-    }
-
     /// The binary mask, foreground 1 (written as 255).
     pub fn mask_image(&self) -> GrayImage {
         GrayImage {
@@ -394,37 +394,71 @@ impl<'a> MaskInference<'a> {
         // Computed once: the `focus` rule votes with them, the support-plane test asks whether a
         // plane holds them, and `keep = "connected"` seeds from them.
         let voters = focus_voters(&r.points, focus);
-        let fg = match masks.foreground {
-            ForegroundRule::Saliency => {
-                let saliency = self.saliency(&r.rgb, name)?;
-                foreground_by_saliency(&km.labels, km.k, &saliency)
-            }
-            ForegroundRule::Focus => foreground_by_votes(&km.labels, km.k, &voters),
+        let saliency = match masks.foreground {
+            ForegroundRule::Saliency => Some(self.saliency(&r.rgb, name)?),
+            ForegroundRule::Focus => None,
         };
-        let mut mask = ViewMask::new(km.labels, km.k, fg, r.rgb);
+        let choose = |labels: &[u32], k: usize| match &saliency {
+            Some(s) => foreground_by_saliency(labels, k, s),
+            None => foreground_by_votes(labels, k, &voters),
+        };
         let support = masks.drop_support_planes.then(|| {
             let view = ViewPoints { points: &r.points, origin: camera.origin(), width: w, height: h };
             on_support_planes(&view, &voters, self.session.config.seed)
         });
-        if let Some(support) = &support {
-            for (f, &s) in mask.foreground.iter_mut().zip(support) {
-                *f &= !s;
+        let continuity =
+            (masks.max_depth_jump > 0.0).then_some(DepthContinuity { depth: &r.depth, max_jump: masks.max_depth_jump });
+        // The cluster's pixels off the support planes, then (with `keep = "connected"`) only
+        // its regions that hold a voter.
+        let cut = |labels: &[u32], fg: usize| -> Vec<bool> {
+            let mut mask: Vec<bool> = labels.iter().map(|&l| l as usize == fg).collect();
+            if let Some(support) = &support {
+                mask.iter_mut().zip(support).for_each(|(f, &s)| *f &= !s);
             }
+            match masks.keep {
+                KeepRegions::All => mask,
+                KeepRegions::Connected => keep_seeded_regions(&mask, w, h, &voters, continuity),
+            }
+        };
+        let (mut labels, mut k) = (km.labels, km.k);
+        let mut fg = choose(&labels, k);
+        let mut foreground = cut(&labels, fg);
+        for _ in 0..masks.border_splits {
+            let share = border_share(&foreground, w, h);
+            if share <= masks.max_border_share as f64 {
+                break;
+            }
+            let seed = self.session.config.seed.wrapping_add(k as u64);
+            let Some(split) = split_cluster(&labels, k, fg, &r.logits, r.channels, masks, seed) else { break };
+            let split_fg = choose(&split, k + 1);
+            let split_foreground = cut(&split, split_fg);
+            // A split that does not pull the mask off the border found no object inside it.
+            if border_share(&split_foreground, w, h) >= share {
+                break;
+            }
+            (labels, k, fg, foreground) = (split, k + 1, split_fg, split_foreground);
         }
         let evidence = MaskEvidence {
-            labels: &mask.labels,
+            labels: &labels,
             foreground_cluster: fg,
             support: support.as_deref(),
             voters: &voters,
             points: &r.points,
         };
-        mask.evidence = Some(evidence_image(&evidence, w, h));
+        let evidence = Some(evidence_image(&evidence, w, h));
         Ok(match masks.keep {
-            KeepRegions::All => mask,
-            KeepRegions::Connected => {
-                let max_jump = masks.max_depth_jump;
-                mask.keep_regions_of(&voters, (max_jump > 0.0).then_some(DepthContinuity { depth: &r.depth, max_jump }))
+            KeepRegions::All => {
+                ViewMask { labels, clusters: k, foreground_cluster: fg, foreground, rgb: r.rgb, evidence }
             }
+            // The labels become the two regions (foreground 1, background 0).
+            KeepRegions::Connected => ViewMask {
+                labels: foreground.iter().map(|&f| u32::from(f)).collect(),
+                clusters: 2,
+                foreground_cluster: 1,
+                foreground,
+                rgb: r.rgb,
+                evidence,
+            },
         })
     }
 

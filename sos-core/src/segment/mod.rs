@@ -1,6 +1,7 @@
 //! Stage 2: the segmentation head attached to every field, strided patch sampling, training
 //! with the collaborative contrastive loss, and mask inference with k-means.
 
+pub mod border_split;
 pub mod cleanup;
 pub mod defaults;
 pub mod diagnostics;

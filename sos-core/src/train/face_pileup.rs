@@ -121,7 +121,7 @@ mod tests {
             density: vec![1.0; n],
             rgb: colours.to_vec(),
             weights: vec![1.0; n],
-            colors: colours.iter().map(|&rgb| RayColor { rgb, depth: 1.0, acc: 1.0 }).collect(),
+            colors: colours.iter().map(|&rgb| RayColor { rgb, depth: 1.0, acc: 1.0, median_depth: 1.0 }).collect(),
             tape: None,
             n_candidates: n,
             coarse: None,
