@@ -46,9 +46,9 @@ pub struct RayColor {
     /// Opacity `Σ w`.
     pub acc: f32,
     /// Distance at which the accumulated opacity reaches [`MEDIAN_OPACITY`] (interpolated
-    /// between the two samples it is reached between): the visible surface, which thin fog in front of it does not pull
-    /// towards the camera as it does `depth`. `depth / acc` for a ray that never gets that
-    /// opaque, [`EMPTY_RAY_DEPTH`] for an empty one.
+    /// between the two samples it is reached between): the visible surface, which thin fog in
+    /// front of it does not pull towards the camera as it does `depth`. `depth / acc` for a
+    /// ray that never gets that opaque, [`EMPTY_RAY_DEPTH`] for an empty one.
     pub median_depth: f32,
 }
 

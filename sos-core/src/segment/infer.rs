@@ -423,8 +423,8 @@ impl<'a> MaskInference<'a> {
         let (mut labels, mut k) = (km.labels, km.k);
         let mut fg = choose(&labels, k);
         let mut foreground = cut(&labels, fg);
+        let mut share = border_share(&foreground, w, h);
         for _ in 0..masks.border_splits {
-            let share = border_share(&foreground, w, h);
             if share <= masks.max_border_share as f64 {
                 break;
             }
@@ -432,11 +432,12 @@ impl<'a> MaskInference<'a> {
             let Some(split) = split_cluster(&labels, k, fg, &r.logits, r.channels, masks, seed) else { break };
             let split_fg = choose(&split, k + 1);
             let split_foreground = cut(&split, split_fg);
+            let split_share = border_share(&split_foreground, w, h);
             // A split that does not pull the mask off the border found no object inside it.
-            if border_share(&split_foreground, w, h) >= share {
+            if split_share >= share {
                 break;
             }
-            (labels, k, fg, foreground) = (split, k + 1, split_fg, split_foreground);
+            (labels, k, fg, foreground, share) = (split, k + 1, split_fg, split_foreground, split_share);
         }
         let evidence = MaskEvidence {
             labels: &labels,
