@@ -183,6 +183,15 @@ pub struct MaskConfig {
     /// Largest share of the image border's pixels a mask may cover before its cluster is split
     /// again (objects rarely run along most of the frame's edge; ground, walls and sky do).
     pub max_border_share: f32,
+    /// Orbit rigs: regions of the foreground cluster that hold no focus voter are kept too
+    /// when they come within this fraction of the nearest training camera's distance from the
+    /// focus and stand in front of what surrounds them
+    /// ([`crate::segment::cleanup::keep_nearby_parts`]): the other members of a group of
+    /// objects. 0 = keep only the voters' regions.
+    pub nearby_parts: f32,
+    /// Share of a nearby region's outline at which the rendered depth must step back (by more
+    /// than `max_depth_jump`) for the region to count as standing: a patch of ground does not.
+    pub min_standing_outline: f32,
     /// Which rendered distance places a pixel's 3D point for the mask rules (focus votes,
     /// support planes, depth continuity).
     pub depth: MaskDepth,
@@ -230,6 +239,10 @@ impl Default for MaskConfig {
             // An object running along one whole long side of a 4:3 frame covers 0.29 of its
             // border; a mask along more than that has background in it.
             max_border_share: 0.3,
+            // Distractors stand outside the cameras' path, the object's parts well inside it.
+            nearby_parts: 0.25,
+            // A part standing on the ground steps back along its top and sides, not its base.
+            min_standing_outline: 0.45,
             depth: MaskDepth::Median,
         }
     }
@@ -416,6 +429,12 @@ impl RunConfig {
         }
         if !(self.masks.max_border_share > 0.0 && self.masks.max_border_share <= 1.0) {
             return Err(invalid("masks.max_border_share", "must be in (0, 1], e.g. 0.3"));
+        }
+        if !(self.masks.nearby_parts >= 0.0 && self.masks.nearby_parts <= 1.0) {
+            return Err(invalid("masks.nearby_parts", "must be in [0, 1] (0 = off), e.g. 0.25"));
+        }
+        if !(self.masks.min_standing_outline >= 0.0 && self.masks.min_standing_outline <= 1.0) {
+            return Err(invalid("masks.min_standing_outline", "must be in [0, 1], e.g. 0.45"));
         }
         for (i, l) in self.loss.iter().enumerate() {
             if !(l.weight >= 0.0 && l.weight.is_finite()) {

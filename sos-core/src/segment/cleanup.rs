@@ -12,8 +12,19 @@
 //! strand of floaters above it) while lying far behind it. With [`DepthContinuity`], two
 //! neighbouring pixels belong to one region only where the rendered depth is continuous, so a
 //! silhouette edge separates the object from whatever is seen behind it.
+//!
+//! The object may also be a group of things side by side, of which the voters touch only one.
+//! On an orbit rig the object stands well inside the cameras' path and everything else beyond
+//! it, so [`keep_nearby_parts`] returns the unseeded regions that come close to the focus and
+//! stand in front of their surroundings (their outline steps back in depth along most of its
+//! length, as a thing standing on the ground does and a patch of the ground does not).
 
 use std::collections::VecDeque;
+
+use crate::camera::{dot, sub, Vec3};
+
+/// Regions smaller than this many pixels are speckle, never a part of the object.
+pub const MIN_PART_PIXELS: usize = 10;
 
 /// Neighbouring pixels join one region only if their rendered depths differ by at most
 /// `max_jump` times the nearer of the two.
@@ -30,6 +41,24 @@ impl DepthContinuity<'_> {
         let (a, b) = (self.depth[i], self.depth[j]);
         (a - b).abs() <= self.max_jump * a.min(b)
     }
+
+    /// Whether pixel `j` lies farther than pixel `i` by more than the largest step.
+    fn steps_back(&self, i: usize, j: usize) -> bool {
+        self.depth[j] > self.depth[i] * (1.0 + self.max_jump)
+    }
+}
+
+/// The 4-neighbours of pixel `i` in a row-major `width x height` image.
+fn neighbours(i: usize, width: usize, height: usize) -> impl Iterator<Item = usize> {
+    let (r, c) = (i / width, i % width);
+    [
+        (r > 0).then(|| i - width),
+        (r + 1 < height).then(|| i + width),
+        (c > 0).then(|| i - 1),
+        (c + 1 < width).then(|| i + 1),
+    ]
+    .into_iter()
+    .flatten()
 }
 
 /// Keeps the 4-connected regions of `foreground` (row-major `width x height`) that contain at
@@ -57,17 +86,86 @@ pub fn keep_seeded_regions(
     }
     // Breadth-first flood fill from every seed at once.
     while let Some(i) = queue.pop_front() {
-        let (r, c) = (i / width, i % width);
-        let neighbours = [
-            (r > 0).then(|| i - width),
-            (r + 1 < height).then(|| i + width),
-            (c > 0).then(|| i - 1),
-            (c + 1 < width).then(|| i + 1),
-        ];
-        for j in neighbours.into_iter().flatten() {
+        for j in neighbours(i, width, height) {
             if foreground[j] && !kept[j] && depth.as_ref().is_none_or(|d| d.joins(i, j)) {
                 kept[j] = true;
                 queue.push_back(j);
+            }
+        }
+    }
+    kept
+}
+
+/// Where the other parts of the object may be: within `radius` of the focus `centre`.
+#[derive(Debug, Clone, Copy)]
+pub struct NearbyParts<'a> {
+    /// Rendered 3D point of every pixel, `None` for empty rays.
+    pub points: &'a [Option<Vec3>],
+    /// The focus point.
+    pub centre: Vec3,
+    /// Largest distance from the focus at which a region still counts as near.
+    pub radius: f32,
+    /// Share of a region's outline at which the depth must step back.
+    pub min_standing_outline: f32,
+}
+
+/// Adds to `kept` (the seeded regions) every other depth-continuous region of `foreground`
+/// of at least [`MIN_PART_PIXELS`] pixels that has a point within the radius of the focus and
+/// stands in front of its surroundings: at no less than `min_standing_outline` of the
+/// region's outline (pixel edges to pixels outside it) the neighbour lies farther by more
+/// than the continuity's largest step. Empty rays lie farthest of all.
+pub fn keep_nearby_parts(
+    foreground: &[bool],
+    mut kept: Vec<bool>,
+    width: usize,
+    height: usize,
+    parts: &NearbyParts,
+    depth: DepthContinuity,
+) -> Vec<bool> {
+    assert_eq!(foreground.len(), width * height, "mask size");
+    assert_eq!(kept.len(), foreground.len(), "kept size");
+    assert_eq!(parts.points.len(), foreground.len(), "points size");
+    let radius2 = parts.radius * parts.radius;
+    let near = |i: usize| {
+        parts.points[i].is_some_and(|p| {
+            let d = sub(p, parts.centre);
+            dot(d, d) <= radius2
+        })
+    };
+    let mut visited = kept.clone();
+    let mut region_of = vec![usize::MAX; foreground.len()];
+    for start in 0..foreground.len() {
+        if !foreground[start] || visited[start] {
+            continue;
+        }
+        visited[start] = true;
+        region_of[start] = start;
+        let mut region = vec![start];
+        let mut next = 0;
+        while next < region.len() {
+            let i = region[next];
+            next += 1;
+            for j in neighbours(i, width, height) {
+                if foreground[j] && !visited[j] && depth.joins(i, j) {
+                    visited[j] = true;
+                    region_of[j] = start;
+                    region.push(j);
+                }
+            }
+        }
+        if region.len() < MIN_PART_PIXELS || !region.iter().any(|&i| near(i)) {
+            continue;
+        }
+        let (mut outline, mut behind) = (0usize, 0usize);
+        for &i in &region {
+            for j in neighbours(i, width, height).filter(|&j| region_of[j] != start) {
+                outline += 1;
+                behind += usize::from(depth.steps_back(i, j));
+            }
+        }
+        if outline > 0 && behind as f64 >= f64::from(parts.min_standing_outline) * outline as f64 {
+            for &i in &region {
+                kept[i] = true;
             }
         }
     }
@@ -123,5 +221,58 @@ mod tests {
         let (fg, w, h) = mask(&["#..", "..#"]);
         assert_eq!(keep_seeded_regions(&fg, w, h, &[1, 99], None), fg);
         assert_eq!(keep_seeded_regions(&fg, w, h, &[], None), fg);
+    }
+
+    /// A 10x8 view: a 4x4 foreground block at depth 2 (columns 1-4, rows 1-4) in front of a
+    /// far wall (rows 0-2, depth 5) and the ground (rows 3-7, depth 3), and a 4x3 foreground
+    /// patch of that ground (columns 6-9, rows 5-7); pixel `i`'s point lies `column` units from
+    /// the focus.
+    fn scene() -> (Vec<bool>, Vec<f32>, Vec<Option<Vec3>>, usize, usize) {
+        let (fg, w, h) = mask(&[
+            "..........",
+            ".####.....",
+            ".####.....",
+            ".####.....",
+            ".####.....",
+            "......####",
+            "......####",
+            "......####",
+        ]);
+        let depth: Vec<f32> = (0..w * h)
+            .map(|i| match (i / w, i % w) {
+                (1..=4, 1..=4) => 2.0,
+                (0..=2, _) => 5.0,
+                _ => 3.0,
+            })
+            .collect();
+        let points = (0..w * h).map(|i| Some([(i % w) as f32, 0.0, 0.0])).collect();
+        (fg, depth, points, w, h)
+    }
+
+    fn nearby(points: &[Option<Vec3>], radius: f32) -> NearbyParts<'_> {
+        NearbyParts { points, centre: [0.0; 3], radius, min_standing_outline: 0.45 }
+    }
+
+    #[test]
+    fn a_standing_part_near_the_focus_is_kept_and_a_ground_patch_is_not() {
+        let (fg, depth, points, w, h) = scene();
+        let continuity = DepthContinuity { depth: &depth, max_jump: 0.1 };
+        let none = vec![false; w * h];
+        let block: Vec<bool> = (0..w * h).map(|i| fg[i] && i % w <= 4).collect();
+        assert_eq!(keep_nearby_parts(&fg, none.clone(), w, h, &nearby(&points, 20.0), continuity), block);
+        // Beyond the radius (the block's nearest point is 1 unit away) it is not kept.
+        assert_eq!(keep_nearby_parts(&fg, none.clone(), w, h, &nearby(&points, 0.5), continuity), none);
+        // Regions already kept stay kept.
+        assert_eq!(keep_nearby_parts(&fg, fg.clone(), w, h, &nearby(&points, 0.5), continuity), fg);
+    }
+
+    #[test]
+    fn specks_are_not_parts() {
+        let (fg, w, h) = mask(&["....", ".##.", "...."]);
+        let depth = [5.0, 5.0, 5.0, 5.0, 5.0, 2.0, 2.0, 5.0, 5.0, 5.0, 5.0, 5.0];
+        let points = vec![Some([0.0; 3]); w * h];
+        let continuity = DepthContinuity { depth: &depth, max_jump: 0.1 };
+        let kept = keep_nearby_parts(&fg, vec![false; w * h], w, h, &nearby(&points, 1.0), continuity);
+        assert!(kept.iter().all(|&k| !k), "a 2-pixel region standing in front is still a speck");
     }
 }

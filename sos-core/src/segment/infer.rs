@@ -16,7 +16,8 @@
 //! With more than two clusters the foreground is the single chosen cluster.
 //!
 //! `masks.keep = "connected"` (the default) then drops the regions of the foreground cluster
-//! that hold none of the `focus` rule's voting pixels ([`crate::segment::cleanup`]). A mask
+//! that hold none of the `focus` rule's voting pixels ([`crate::segment::cleanup`]); on orbit
+//! rigs the regions that stand near the focus stay (`masks.nearby_parts`). A mask
 //! that still covers most of the image border has its cluster split again
 //! ([`crate::segment::border_split`]).
 
@@ -31,7 +32,7 @@ use crate::render::rays::RayBatch;
 use crate::render::renderer::{render_inference, ExtraChannels};
 use crate::scene::Scene;
 use crate::segment::border_split::{border_share, split_cluster};
-use crate::segment::cleanup::{keep_seeded_regions, DepthContinuity};
+use crate::segment::cleanup::{keep_nearby_parts, keep_seeded_regions, DepthContinuity, NearbyParts};
 use crate::segment::diagnostics::{evidence_image, MaskEvidence};
 use crate::segment::head::SegHead;
 use crate::segment::head_pass;
@@ -288,6 +289,18 @@ impl FocusTarget {
     }
 }
 
+/// Distance from `p` to the nearest training camera centre (infinite with none).
+fn nearest_camera_distance(scene: &Scene, p: Vec3) -> f32 {
+    scene
+        .train
+        .iter()
+        .map(|&i| {
+            let d = sub(scene.views[i].camera.origin(), p);
+            dot(d, d).sqrt()
+        })
+        .fold(f32::INFINITY, f32::min)
+}
+
 /// Pixels of the central window along a side of `n` pixels (at least one).
 fn window(n: usize) -> usize {
     ((n as f32 * CENTRAL_FRACTION).round() as usize).clamp(1, n.max(1))
@@ -408,6 +421,17 @@ impl<'a> MaskInference<'a> {
         });
         let continuity =
             (masks.max_depth_jump > 0.0).then_some(DepthContinuity { depth: &r.depth, max_jump: masks.max_depth_jump });
+        // Only an orbit's focus is a point the object surrounds; a forward-facing one is where
+        // the view's centre happens to land.
+        let nearby = match self.focus {
+            FocusTarget::Point(centre) if masks.nearby_parts > 0.0 => Some(NearbyParts {
+                points: &r.points,
+                centre,
+                radius: masks.nearby_parts * nearest_camera_distance(&self.session.scene, centre),
+                min_standing_outline: masks.min_standing_outline,
+            }),
+            _ => None,
+        };
         // The cluster's pixels off the support planes, then (with `keep = "connected"`) only
         // its regions that hold a voter.
         let cut = |labels: &[u32], fg: usize| -> Vec<bool> {
@@ -417,7 +441,13 @@ impl<'a> MaskInference<'a> {
             }
             match masks.keep {
                 KeepRegions::All => mask,
-                KeepRegions::Connected => keep_seeded_regions(&mask, w, h, &voters, continuity),
+                KeepRegions::Connected => {
+                    let kept = keep_seeded_regions(&mask, w, h, &voters, continuity);
+                    match (&nearby, continuity) {
+                        (Some(parts), Some(depth)) => keep_nearby_parts(&mask, kept, w, h, parts, depth),
+                        _ => kept,
+                    }
+                }
             }
         };
         let (mut labels, mut k) = (km.labels, km.k);
