@@ -29,9 +29,8 @@ use sos_core::derived::{DerivedSetting, PatchFacts};
 use sos_core::error::{BuildError, ExtractError};
 use sos_core::image::RgbImage;
 use sos_core::plugin::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};
-use sos_core::registry::Registration;
 
-const KIND: &str = "cell-stats";
+const KIND: &str = CellStatsConfig::KIND;
 /// Bump when the features change, so cached teacher features are recomputed.
 const VERSION: u32 = 3;
 /// Teacher cells across a stage-2 patch when `cell` is left to the run: an 8x8 grid was the
@@ -168,37 +167,33 @@ impl CellStatsConfig {
     }
 }
 
-#[typetag::serde(name = "cell-stats")]
-impl FeatureExtractorConfig for CellStatsConfig {
-    fn build(&self, _ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
-        self.validate()?;
-        Ok(Box::new(CellStats { config: self.clone() }))
-    }
-
-    fn derive_for(&mut self, patch: &PatchFacts) -> Vec<DerivedSetting> {
-        if self.cell.is_some() {
-            return Vec::new();
+sos_core::plugin_kind! {
+    kind: "cell-stats",
+    summary: "weight-free colour and texture statistics per cell (offline fallback for DINO)",
+    default: default_config,
+    impl FeatureExtractorConfig for CellStatsConfig {
+        fn build(&self, _ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
+            self.validate()?;
+            Ok(Box::new(CellStats { config: self.clone() }))
         }
-        let cell = (patch.patch_size as usize / CELLS_PER_PATCH).max(2);
-        self.cell = Some(cell);
-        vec![DerivedSetting::new(
-            "extractor.cell",
-            cell,
-            format!("{CELLS_PER_PATCH} cells across the {}-ray patch", patch.patch_size),
-        )]
+
+        fn derive_for(&mut self, patch: &PatchFacts) -> Vec<DerivedSetting> {
+            if self.cell.is_some() {
+                return Vec::new();
+            }
+            let cell = (patch.patch_size as usize / CELLS_PER_PATCH).max(2);
+            self.cell = Some(cell);
+            vec![DerivedSetting::new(
+                "extractor.cell",
+                cell,
+                format!("{CELLS_PER_PATCH} cells across the {}-ray patch", patch.patch_size),
+            )]
+        }
     }
 }
 
 fn default_config() -> Box<dyn FeatureExtractorConfig> {
     Box::new(CellStatsConfig::default())
-}
-
-inventory::submit! {
-    Registration::<dyn FeatureExtractorConfig>::new(
-        KIND,
-        "weight-free colour and texture statistics per cell (offline fallback for DINO)",
-        default_config,
-    )
 }
 
 /// The `cell-stats` extractor; build it from a validated [`CellStatsConfig`].

@@ -28,12 +28,11 @@ use serde::{Deserialize, Serialize};
 use sos_core::error::{BuildError, ExtractError};
 use sos_core::image::RgbImage;
 use sos_core::plugin::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};
-use sos_core::registry::Registration;
 
 use crate::checkpoint::content_hash;
 use crate::dino_vit::preprocess::{Preprocess, Resize, IMAGENET_MEAN, IMAGENET_STD};
 
-const KIND: &str = "onnx";
+const KIND: &str = OnnxConfig::KIND;
 /// Bump when the features change, so cached teacher features are recomputed.
 const VERSION: u32 = 1;
 
@@ -233,28 +232,24 @@ impl OnnxConfig {
     }
 }
 
-#[typetag::serde(name = "onnx")]
-impl FeatureExtractorConfig for OnnxConfig {
-    fn build(&self, ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
-        let resolved = OnnxConfig {
-            model: ctx.resolve(&self.model),
-            runtime: self.runtime.as_deref().map(|r| ctx.resolve(r)),
-            ..self.clone()
-        };
-        Ok(Box::new(OnnxExtractor::new(resolved)?))
+sos_core::plugin_kind! {
+    kind: "onnx",
+    summary: "any exported backbone (.onnx) through ONNX Runtime, loaded at run time (ORT_DYLIB_PATH)",
+    default: default_config,
+    impl FeatureExtractorConfig for OnnxConfig {
+        fn build(&self, ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
+            let resolved = OnnxConfig {
+                model: ctx.resolve(&self.model),
+                runtime: self.runtime.as_deref().map(|r| ctx.resolve(r)),
+                ..self.clone()
+            };
+            Ok(Box::new(OnnxExtractor::new(resolved)?))
+        }
     }
 }
 
 fn default_config() -> Box<dyn FeatureExtractorConfig> {
     Box::new(OnnxConfig::default())
-}
-
-inventory::submit! {
-    Registration::<dyn FeatureExtractorConfig>::new(
-        KIND,
-        "any exported backbone (.onnx) through ONNX Runtime, loaded at run time (ORT_DYLIB_PATH)",
-        default_config,
-    )
 }
 
 /// The `onnx` extractor.

@@ -21,33 +21,26 @@ macro_rules! register_dataset {
     // With `derived(&config, root, &scene)`: the settings the loader chose where the config
     // left them unset.
     ($config:ident, $kind:tt, $summary:tt, $load:path, $derived:path) => {
-        #[typetag::serde(name = $kind)]
-        impl sos_core::plugin::dataset::DatasetConfig for $config {
-            fn open(
-                &self,
-                config_dir: &std::path::Path,
-            ) -> Result<sos_core::scene::Scene, sos_core::plugin::dataset::DatasetError> {
-                $load(self, &config_dir.join(&self.path))
-            }
+        sos_core::plugin_kind! {
+            kind: $kind,
+            summary: $summary,
+            default: || Box::new(<$config>::default()),
+            impl sos_core::plugin::dataset::DatasetConfig for $config {
+                fn open(
+                    &self,
+                    config_dir: &std::path::Path,
+                ) -> Result<sos_core::scene::Scene, sos_core::plugin::dataset::DatasetError> {
+                    $load(self, &config_dir.join(&self.path))
+                }
 
-            fn derived(
-                &self,
-                config_dir: &std::path::Path,
-                scene: &sos_core::scene::Scene,
-            ) -> Vec<sos_core::derived::DerivedSetting> {
-                $derived(self, &config_dir.join(&self.path), scene)
+                fn derived(
+                    &self,
+                    config_dir: &std::path::Path,
+                    scene: &sos_core::scene::Scene,
+                ) -> Vec<sos_core::derived::DerivedSetting> {
+                    $derived(self, &config_dir.join(&self.path), scene)
+                }
             }
-        }
-
-        $crate::adapter::register_dataset!($config, $kind, $summary);
-    };
-    ($config:ident, $kind:tt, $summary:tt) => {
-        inventory::submit! {
-            sos_core::registry::Registration::<dyn sos_core::plugin::dataset::DatasetConfig>::new(
-                $kind,
-                $summary,
-                || Box::new(<$config>::default()),
-            )
         }
     };
 }

@@ -11,12 +11,11 @@ use rand::{Rng, RngCore};
 use serde::{Deserialize, Serialize};
 use sos_core::error::BuildError;
 use sos_core::plugin::{ContrastiveLoss, ContrastiveLossConfig, FeatureMap, LossValue, PatchBatch};
-use sos_core::registry::Registration;
 
 use crate::normalize::{l2_normalize, l2_normalize_backward};
 use crate::{validate, PatchShape};
 
-const KIND: &str = "appearance";
+const KIND: &str = AppearanceConfig::KIND;
 
 /// Lower bound of the channel norm in the L2 normalisations (STEGO's `F.normalize` eps).
 pub const NORM_EPS: f64 = 1e-10;
@@ -49,26 +48,22 @@ impl Default for AppearanceConfig {
     }
 }
 
-#[typetag::serde(name = "appearance")]
-impl ContrastiveLossConfig for AppearanceConfig {
-    fn build(&self) -> Result<Box<dyn ContrastiveLoss>, BuildError> {
-        validate::finite(KIND, "identity_shift", self.identity_shift)?;
-        validate::non_negative(KIND, "identity_weight", self.identity_weight)?;
-        validate::finite(KIND, "negative_shift", self.negative_shift)?;
-        validate::non_negative(KIND, "negative_weight", self.negative_weight)?;
-        if self.samples == 0 {
-            return Err(validate::invalid(KIND, "samples", "must be at least 1"));
+sos_core::plugin_kind! {
+    kind: "appearance",
+    summary: "STEGO correlation loss between teacher features and logits at random sample points",
+    default: || Box::new(AppearanceConfig::default()),
+    impl ContrastiveLossConfig for AppearanceConfig {
+        fn build(&self) -> Result<Box<dyn ContrastiveLoss>, BuildError> {
+            validate::finite(KIND, "identity_shift", self.identity_shift)?;
+            validate::non_negative(KIND, "identity_weight", self.identity_weight)?;
+            validate::finite(KIND, "negative_shift", self.negative_shift)?;
+            validate::non_negative(KIND, "negative_weight", self.negative_weight)?;
+            if self.samples == 0 {
+                return Err(validate::invalid(KIND, "samples", "must be at least 1"));
+            }
+            Ok(Box::new(AppearanceLoss { config: self.clone() }))
         }
-        Ok(Box::new(AppearanceLoss { config: self.clone() }))
     }
-}
-
-inventory::submit! {
-    Registration::<dyn ContrastiveLossConfig>::new(
-        KIND,
-        "STEGO correlation loss between teacher features and logits at random sample points",
-        || Box::new(AppearanceConfig::default()),
-    )
 }
 
 /// The appearance contrastive loss (built from a validated [`AppearanceConfig`]).

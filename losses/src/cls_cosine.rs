@@ -5,11 +5,10 @@ use rand::RngCore;
 use serde::{Deserialize, Serialize};
 use sos_core::error::BuildError;
 use sos_core::plugin::{PairMiner, PairMinerConfig};
-use sos_core::registry::Registration;
 
 use crate::validate;
 
-const KIND: &str = "cls-cosine";
+const KIND: &str = ClsCosineConfig::KIND;
 
 /// Settings of [`ClsCosineMiner`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -25,20 +24,16 @@ impl Default for ClsCosineConfig {
     }
 }
 
-#[typetag::serde(name = "cls-cosine")]
-impl PairMinerConfig for ClsCosineConfig {
-    fn build(&self) -> Result<Box<dyn PairMiner>, BuildError> {
-        validate::positive(KIND, "eps", self.eps)?;
-        Ok(Box::new(ClsCosineMiner { eps: self.eps }))
+sos_core::plugin_kind! {
+    kind: "cls-cosine",
+    summary: "negative = patch with the least cosine-similar CLS descriptor (reference mining)",
+    default: || Box::new(ClsCosineConfig::default()),
+    impl PairMinerConfig for ClsCosineConfig {
+        fn build(&self) -> Result<Box<dyn PairMiner>, BuildError> {
+            validate::positive(KIND, "eps", self.eps)?;
+            Ok(Box::new(ClsCosineMiner { eps: self.eps }))
+        }
     }
-}
-
-inventory::submit! {
-    Registration::<dyn PairMinerConfig>::new(
-        KIND,
-        "negative = patch with the least cosine-similar CLS descriptor (reference mining)",
-        || Box::new(ClsCosineConfig::default()),
-    )
 }
 
 /// Picks, for each patch, the patch whose CLS vector has the smallest cosine similarity to its

@@ -14,12 +14,11 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sos_core::error::BuildError;
 use sos_core::plugin::{ContrastiveLoss, ContrastiveLossConfig, LossValue, PatchBatch};
-use sos_core::registry::Registration;
 
 use crate::normalize::{l2_normalize, l2_normalize_backward};
 use crate::{validate, PatchShape};
 
-const KIND: &str = "geometry";
+const KIND: &str = GeometryConfig::KIND;
 
 /// Lower bound of the channel norm when normalising the logits (`F.normalize` eps).
 pub const NORM_EPS: f64 = 1e-10;
@@ -76,26 +75,22 @@ impl GeometryConfig {
     }
 }
 
-#[typetag::serde(name = "geometry")]
-impl ContrastiveLossConfig for GeometryConfig {
-    fn build(&self) -> Result<Box<dyn ContrastiveLoss>, BuildError> {
-        validate::finite(KIND, "identity_shift", self.identity_shift)?;
-        validate::non_negative(KIND, "identity_weight", self.identity_weight)?;
-        validate::finite(KIND, "negative_shift", self.negative_shift)?;
-        validate::non_negative(KIND, "negative_weight", self.negative_weight)?;
-        validate::positive(KIND, "epsilon", self.epsilon)?;
-        validate::positive(KIND, "cap", self.cap)?;
-        validate::positive(KIND, "depth_clip", self.depth_clip)?;
-        Ok(Box::new(GeometryLoss { config: self.clone() }))
+sos_core::plugin_kind! {
+    kind: "geometry",
+    summary: "inverse-L1 correlation loss between rendered 3D points and logits over all pixel pairs",
+    default: || Box::new(GeometryConfig::default()),
+    impl ContrastiveLossConfig for GeometryConfig {
+        fn build(&self) -> Result<Box<dyn ContrastiveLoss>, BuildError> {
+            validate::finite(KIND, "identity_shift", self.identity_shift)?;
+            validate::non_negative(KIND, "identity_weight", self.identity_weight)?;
+            validate::finite(KIND, "negative_shift", self.negative_shift)?;
+            validate::non_negative(KIND, "negative_weight", self.negative_weight)?;
+            validate::positive(KIND, "epsilon", self.epsilon)?;
+            validate::positive(KIND, "cap", self.cap)?;
+            validate::positive(KIND, "depth_clip", self.depth_clip)?;
+            Ok(Box::new(GeometryLoss { config: self.clone() }))
+        }
     }
-}
-
-inventory::submit! {
-    Registration::<dyn ContrastiveLossConfig>::new(
-        KIND,
-        "inverse-L1 correlation loss between rendered 3D points and logits over all pixel pairs",
-        || Box::new(GeometryConfig::default()),
-    )
 }
 
 /// The geometry contrastive loss (built from a validated [`GeometryConfig`]).

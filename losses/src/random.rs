@@ -6,26 +6,21 @@ use rand::RngCore;
 use serde::{Deserialize, Serialize};
 use sos_core::error::BuildError;
 use sos_core::plugin::{PairMiner, PairMinerConfig};
-use sos_core::registry::Registration;
 
 /// Settings of [`RandomMiner`] (none).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct RandomConfig {}
 
-#[typetag::serde(name = "random")]
-impl PairMinerConfig for RandomConfig {
-    fn build(&self) -> Result<Box<dyn PairMiner>, BuildError> {
-        Ok(Box::new(RandomMiner))
+sos_core::plugin_kind! {
+    kind: "random",
+    summary: "negative = a uniformly random derangement of the batch",
+    default: || Box::new(RandomConfig::default()),
+    impl PairMinerConfig for RandomConfig {
+        fn build(&self) -> Result<Box<dyn PairMiner>, BuildError> {
+            Ok(Box::new(RandomMiner))
+        }
     }
-}
-
-inventory::submit! {
-    Registration::<dyn PairMinerConfig>::new(
-        "random",
-        "negative = a uniformly random derangement of the batch",
-        || Box::new(RandomConfig::default()),
-    )
 }
 
 /// Pairs each patch with a different, uniformly random one: the negatives form a derangement

@@ -13,6 +13,10 @@ pub mod metrics;
 pub mod nn;
 pub mod plugin;
 pub mod registry;
+
+// Re-exported for `plugin_kind!`, so that plugin crates need not name inventory themselves.
+#[doc(hidden)]
+pub use inventory;
 pub mod render;
 pub mod scene;
 pub mod segment;

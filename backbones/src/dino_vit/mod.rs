@@ -26,14 +26,13 @@ use serde::{Deserialize, Serialize};
 use sos_core::error::{BuildError, ExtractError};
 use sos_core::image::RgbImage;
 use sos_core::plugin::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};
-use sos_core::registry::Registration;
 
 pub use arch::Arch;
 pub use crate::checkpoint::{CheckpointError, StateDict};
 pub use model::{LoadError, Vit, VitOutput, VitShape};
 pub use preprocess::{Preprocess, Resize};
 
-const KIND: &str = "dino-vit";
+const KIND: &str = DinoVitConfig::KIND;
 /// Bump when the features change, so cached teacher features are recomputed.
 const VERSION: u32 = 1;
 
@@ -191,26 +190,22 @@ impl DinoVitConfig {
     }
 }
 
-#[typetag::serde(name = "dino-vit")]
-impl FeatureExtractorConfig for DinoVitConfig {
-    fn build(&self, ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
-        let resolved = DinoVitConfig { weights: ctx.resolve(&self.weights), ..self.clone() };
-        let (model, hash) = resolved.load_model()?;
-        let pre = self.preprocess(model.shape.patch);
-        Ok(Box::new(DinoVit::new(model, pre, format!("{hash:016x}"), self.batch)))
+sos_core::plugin_kind! {
+    kind: "dino-vit",
+    summary: "DINO ViT-S/16, S/8, B/16 or B/8 from the official .pth (or .safetensors) weights, on the CPU (the reference's teacher)",
+    default: default_config,
+    impl FeatureExtractorConfig for DinoVitConfig {
+        fn build(&self, ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
+            let resolved = DinoVitConfig { weights: ctx.resolve(&self.weights), ..self.clone() };
+            let (model, hash) = resolved.load_model()?;
+            let pre = self.preprocess(model.shape.patch);
+            Ok(Box::new(DinoVit::new(model, pre, format!("{hash:016x}"), self.batch)))
+        }
     }
 }
 
 fn default_config() -> Box<dyn FeatureExtractorConfig> {
     Box::new(DinoVitConfig::default())
-}
-
-inventory::submit! {
-    Registration::<dyn FeatureExtractorConfig>::new(
-        KIND,
-        "DINO ViT-S/16, S/8, B/16 or B/8 from the official .pth (or .safetensors) weights, on the CPU (the reference's teacher)",
-        default_config,
-    )
 }
 
 /// The `dino-vit` extractor.

@@ -24,13 +24,12 @@ use serde::{Deserialize, Serialize};
 use sos_core::error::{BuildError, ExtractError};
 use sos_core::image::{resize_channels, RgbImage};
 use sos_core::plugin::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};
-use sos_core::registry::Registration;
 
 use crate::checkpoint::{CheckpointError, StateDict};
 use crate::dino_vit::preprocess::{self, Preprocess, Resize};
 pub use model::{LiteNet, LiteOutput, LoadError};
 
-const KIND: &str = "efficientnet-lite";
+const KIND: &str = EfficientNetLiteConfig::KIND;
 /// Bump when the features change, so cached teacher features are recomputed.
 const VERSION: u32 = 1;
 /// The file inside the PyPI wheel.
@@ -170,25 +169,21 @@ impl EfficientNetLiteConfig {
     }
 }
 
-#[typetag::serde(name = "efficientnet-lite")]
-impl FeatureExtractorConfig for EfficientNetLiteConfig {
-    fn build(&self, ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
-        let resolved = EfficientNetLiteConfig { weights: ctx.resolve(&self.weights), ..self.clone() };
-        let (model, hash) = resolved.load_model()?;
-        Ok(Box::new(EfficientNetLite::new(model, self, format!("{hash:016x}"))))
+sos_core::plugin_kind! {
+    kind: "efficientnet-lite",
+    summary: "EfficientNet-Lite0 (ImageNet CNN) from the published .pth weights, on the CPU: stage features, pooled head, activation saliency",
+    default: default_config,
+    impl FeatureExtractorConfig for EfficientNetLiteConfig {
+        fn build(&self, ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
+            let resolved = EfficientNetLiteConfig { weights: ctx.resolve(&self.weights), ..self.clone() };
+            let (model, hash) = resolved.load_model()?;
+            Ok(Box::new(EfficientNetLite::new(model, self, format!("{hash:016x}"))))
+        }
     }
 }
 
 fn default_config() -> Box<dyn FeatureExtractorConfig> {
     Box::new(EfficientNetLiteConfig::default())
-}
-
-inventory::submit! {
-    Registration::<dyn FeatureExtractorConfig>::new(
-        KIND,
-        "EfficientNet-Lite0 (ImageNet CNN) from the published .pth weights, on the CPU: stage features, pooled head, activation saliency",
-        default_config,
-    )
 }
 
 /// The `efficientnet-lite` extractor.

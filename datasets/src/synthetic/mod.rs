@@ -80,7 +80,7 @@ use sos_core::camera::Camera;
 use sos_core::plugin::dataset::{DatasetConfig, DatasetError};
 use sos_core::scene::{Scene, SceneExtent, View};
 
-use crate::adapter::{hold_out_split, register_dataset};
+use crate::adapter::hold_out_split;
 use crate::pose::{self, Pose};
 pub use world::{OBJECT_CENTRE, OBJECT_RADIUS, ROOM_MAX, ROOM_MIN};
 
@@ -203,22 +203,20 @@ impl SyntheticConfig {
     }
 }
 
-#[typetag::serde(name = "synthetic")]
-impl DatasetConfig for SyntheticConfig {
-    fn open(&self, _config_dir: &Path) -> Result<Scene, DatasetError> {
-        self.check().map_err(|message| DatasetError::Invalid {
-            path: PathBuf::from("[scene] kind = \"synthetic\""),
-            message,
-        })?;
-        Ok(generate(self))
+sos_core::plugin_kind! {
+    kind: "synthetic",
+    summary: "procedural ray-traced scene with one object and exact masks (object-centric, forward-facing or unbounded rig; seeded random worlds)",
+    default: || Box::new(SyntheticConfig::default()),
+    impl DatasetConfig for SyntheticConfig {
+        fn open(&self, _config_dir: &Path) -> Result<Scene, DatasetError> {
+            self.check().map_err(|message| DatasetError::Invalid {
+                path: PathBuf::from(format!("[scene] kind = \"{}\"", Self::KIND)),
+                message,
+            })?;
+            Ok(generate(self))
+        }
     }
 }
-
-register_dataset!(
-    SyntheticConfig,
-    "synthetic",
-    "procedural ray-traced scene with one object and exact masks (object-centric, forward-facing or unbounded rig; seeded random worlds)"
-);
 
 /// Generates the scene described by `cfg`.
 ///

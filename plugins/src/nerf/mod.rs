@@ -24,7 +24,6 @@ use serde::{Deserialize, Serialize};
 use sos_core::error::BuildError;
 use sos_core::plugin::field::Hierarchical;
 use sos_core::plugin::{RadianceField, RadianceFieldConfig};
-use sos_core::registry::Registration;
 use sos_core::render::contraction::Contraction;
 use sos_core::scene::SceneExtent;
 
@@ -109,20 +108,16 @@ impl NerfConfig {
 /// The bounds of `nerf`'s checks.
 const LIMITS: Limits = Limits { kind: "nerf", max_coarse_samples: 1024 };
 
-#[typetag::serde(name = "nerf")]
-impl RadianceFieldConfig for NerfConfig {
-    fn build(&self, extent: &SceneExtent, seed: u64) -> Result<Box<dyn RadianceField>, BuildError> {
-        self.validate()?;
-        Ok(Box::new(NerfField::new(self.clone(), Contraction::new(extent), seed)))
+sos_core::plugin_kind! {
+    kind: "nerf",
+    summary: "the reference NeRF MLP (PE 10/4, 8x256 trunk with skip, view branch, coarse + fine networks)",
+    default: || Box::new(NerfConfig::default()),
+    impl RadianceFieldConfig for NerfConfig {
+        fn build(&self, extent: &SceneExtent, seed: u64) -> Result<Box<dyn RadianceField>, BuildError> {
+            self.validate()?;
+            Ok(Box::new(NerfField::new(self.clone(), Contraction::new(extent), seed)))
+        }
     }
-}
-
-inventory::submit! {
-    Registration::<dyn RadianceFieldConfig>::new(
-        "nerf",
-        "the reference NeRF MLP (PE 10/4, 8x256 trunk with skip, view branch, coarse + fine networks)",
-        || Box::new(NerfConfig::default()),
-    )
 }
 
 #[cfg(test)]

@@ -28,7 +28,6 @@ mod field;
 use serde::{Deserialize, Serialize};
 use sos_core::error::BuildError;
 use sos_core::plugin::{RadianceField, RadianceFieldConfig};
-use sos_core::registry::Registration;
 use sos_core::render::contraction::Contraction;
 use sos_core::scene::SceneExtent;
 
@@ -128,29 +127,25 @@ impl NerfPpConfig {
 /// The bounds of `nerf++`'s checks.
 const LIMITS: Limits = Limits { kind: "nerf++", max_coarse_samples: 2048 };
 
-#[typetag::serde(name = "nerf++")]
-impl RadianceFieldConfig for NerfPpConfig {
-    fn build(&self, extent: &SceneExtent, seed: u64) -> Result<Box<dyn RadianceField>, BuildError> {
-        self.validate()?;
-        let space = match *extent {
-            SceneExtent::Unbounded { center, radius } => {
-                if !(radius > 0.0 && radius.is_finite()) {
-                    return Err(LIMITS.invalid("scene", "the scene's foreground sphere needs a positive radius"));
+sos_core::plugin_kind! {
+    kind: "nerf++",
+    summary: "NeRF++: foreground NeRF in the unit sphere + inverted-sphere background NeRF, for unbounded scenes",
+    default: || Box::new(NerfPpConfig::default()),
+    impl RadianceFieldConfig for NerfPpConfig {
+        fn build(&self, extent: &SceneExtent, seed: u64) -> Result<Box<dyn RadianceField>, BuildError> {
+            self.validate()?;
+            let space = match *extent {
+                SceneExtent::Unbounded { center, radius } => {
+                    if !(radius > 0.0 && radius.is_finite()) {
+                        return Err(LIMITS.invalid("scene", "the scene's foreground sphere needs a positive radius"));
+                    }
+                    Space::Sphere { center, radius, background: self.background == Background::Auto }
                 }
-                Space::Sphere { center, radius, background: self.background == Background::Auto }
-            }
-            _ => Space::Cube(Contraction::new(extent)),
-        };
-        Ok(Box::new(NerfPpField::new(self.clone(), space, seed)))
+                _ => Space::Cube(Contraction::new(extent)),
+            };
+            Ok(Box::new(NerfPpField::new(self.clone(), space, seed)))
+        }
     }
-}
-
-inventory::submit! {
-    Registration::<dyn RadianceFieldConfig>::new(
-        "nerf++",
-        "NeRF++: foreground NeRF in the unit sphere + inverted-sphere background NeRF, for unbounded scenes",
-        || Box::new(NerfPpConfig::default()),
-    )
 }
 
 #[cfg(test)]

@@ -13,7 +13,6 @@ mod sparse_adam;
 use serde::{Deserialize, Serialize};
 use sos_core::error::BuildError;
 use sos_core::plugin::{RadianceField, RadianceFieldConfig};
-use sos_core::registry::Registration;
 use sos_core::render::contraction::Contraction;
 use sos_core::scene::SceneExtent;
 
@@ -105,19 +104,16 @@ impl VoxelGridConfig {
     }
 }
 
-#[typetag::serde(name = "voxel-grid")]
-impl RadianceFieldConfig for VoxelGridConfig {
-    fn build(&self, extent: &SceneExtent, seed: u64) -> Result<Box<dyn RadianceField>, BuildError> {
-        self.validate()?;
-        let _ = seed; // The grid starts empty and uniform; nothing random to draw.
-        Ok(Box::new(VoxelGridField::new(self.clone(), Contraction::new(extent), extent)))
+sos_core::plugin_kind! {
+    kind: "voxel-grid",
+    summary: "dense density + spherical-harmonics grid, coarse-to-fine (DVGO/Plenoxels-style), fast on CPU",
+    default: || Box::new(VoxelGridConfig::default()),
+    impl RadianceFieldConfig for VoxelGridConfig {
+        fn build(&self, extent: &SceneExtent, seed: u64) -> Result<Box<dyn RadianceField>, BuildError> {
+            self.validate()?;
+            let _ = seed; // The grid starts empty and uniform; nothing random to draw.
+            Ok(Box::new(VoxelGridField::new(self.clone(), Contraction::new(extent), extent)))
+        }
     }
 }
 
-inventory::submit! {
-    Registration::<dyn RadianceFieldConfig>::new(
-        "voxel-grid",
-        "dense density + spherical-harmonics grid, coarse-to-fine (DVGO/Plenoxels-style), fast on CPU",
-        || Box::new(VoxelGridConfig::default()),
-    )
-}
