@@ -282,6 +282,12 @@ impl RadianceField for NanColour {
     fn step(&mut self, lr_factor: f32) {
         self.0.step(lr_factor);
     }
+    fn gradients_finite(&self) -> bool {
+        self.0.gradients_finite()
+    }
+    fn discard_gradients(&mut self) {
+        self.0.discard_gradients();
+    }
     fn seg_input_dim(&self) -> usize {
         self.0.seg_input_dim()
     }
@@ -291,7 +297,7 @@ impl RadianceField for NanColour {
     fn save_state(&self) -> Vec<u8> {
         self.0.save_state()
     }
-    fn load_state(&mut self, b: &[u8]) -> Result<(), String> {
+    fn load_state(&mut self, b: &[u8]) -> Result<(), sos_core::error::StateError> {
         self.0.load_state(b)
     }
     fn num_parameters(&self) -> usize {

@@ -9,8 +9,9 @@ use std::sync::Arc;
 
 use common::tiny_session;
 use sos_core::camera::Vec3;
-use sos_core::plugin::field::Hierarchical;
-use sos_core::plugin::{FieldTape, RadianceField};
+use sos_core::error::StateError;
+use sos_core::plugin::field::plain;
+use sos_core::plugin::{FieldTape, FrozenPass, HierarchicalSampling, RadianceField};
 use sos_core::segment::train::{train_segmentation, Segmenter};
 use sos_core::train::photometric::train_photometric;
 use sos_core::train::Session;
@@ -38,11 +39,11 @@ impl RadianceField for Probe {
     fn step(&mut self, lr_factor: f32) {
         self.inner.step(lr_factor);
     }
-    fn hierarchical(&self) -> Option<Hierarchical> {
-        self.inner.hierarchical()
+    fn gradients_finite(&self) -> bool {
+        self.inner.gradients_finite()
     }
-    fn coarse(&self) -> Option<&dyn RadianceField> {
-        self.inner.coarse()
+    fn discard_gradients(&mut self) {
+        self.inner.discard_gradients();
     }
     fn seg_input_dim(&self) -> usize {
         self.inner.seg_input_dim()
@@ -50,18 +51,36 @@ impl RadianceField for Probe {
     fn seg_input(&self, p: &[Vec3], out: &mut [f32]) {
         self.inner.seg_input(p, out);
     }
+    fn save_state(&self) -> Vec<u8> {
+        self.inner.save_state()
+    }
+    fn load_state(&mut self, bytes: &[u8]) -> Result<(), StateError> {
+        self.inner.load_state(bytes)
+    }
+    fn num_parameters(&self) -> usize {
+        self.inner.num_parameters()
+    }
+    fn hierarchical(&self) -> Option<&dyn HierarchicalSampling> {
+        self.inner.hierarchical()
+    }
+    fn frozen_pass(&self) -> Option<&dyn FrozenPass> {
+        Some(self)
+    }
+}
+
+impl FrozenPass for Probe {
     fn forward_with_seg_input(&self, p: &[Vec3], d: &[Vec3], density: &mut [f32], rgb: &mut [[f32; 3]], seg: &mut [f32]) {
-        self.inner.forward_with_seg_input(p, d, density, rgb, seg);
+        plain::forward_with_seg_input(self.inner.as_ref(), p, d, density, rgb, seg);
     }
     fn density_state_dim(&self) -> usize {
         if self.hide_state {
             0
         } else {
-            self.inner.density_state_dim()
+            plain::density_state_dim(self.inner.as_ref())
         }
     }
     fn density_with_state(&self, p: &[Vec3], density: &mut [f32], state: &mut [f32]) {
-        self.inner.density_with_state(p, density, state);
+        plain::density_with_state(self.inner.as_ref(), p, density, state);
     }
     fn colour_from_state(
         &self,
@@ -73,16 +92,7 @@ impl RadianceField for Probe {
         seg: Option<&mut [f32]>,
     ) {
         self.from_state.fetch_add(rows.len(), Ordering::Relaxed);
-        self.inner.colour_from_state(p, d, state, rows, rgb, seg);
-    }
-    fn save_state(&self) -> Vec<u8> {
-        self.inner.save_state()
-    }
-    fn load_state(&mut self, bytes: &[u8]) -> Result<(), String> {
-        self.inner.load_state(bytes)
-    }
-    fn num_parameters(&self) -> usize {
-        self.inner.num_parameters()
+        plain::colour_from_state(self.inner.as_ref(), p, d, state, rows, rgb, seg);
     }
 }
 

@@ -8,8 +8,9 @@ use std::sync::Arc;
 
 use common::tiny_session;
 use sos_core::camera::Vec3;
-use sos_core::error::RunError;
-use sos_core::plugin::{FieldTape, RadianceField};
+use sos_core::error::{RunError, StateError};
+use sos_core::plugin::field::plain;
+use sos_core::plugin::{CoarseToFine, FieldTape, RadianceField};
 use sos_core::segment::train::{train_segmentation, Segmenter};
 use sos_core::train::photometric::train_photometric;
 use sos_core::train::Session;
@@ -74,16 +75,6 @@ impl RadianceField for Poisoned {
     fn discard_gradients(&mut self) {
         self.inner.discard_gradients();
     }
-    fn begin_step(&mut self, step: usize, total: usize) -> bool {
-        // One poisoned training step per call while any are left (stage 1).
-        if step > 0 {
-            let _ = self.left.fetch_update(Ordering::Relaxed, Ordering::Relaxed, |v| v.checked_sub(1));
-        }
-        self.inner.begin_step(step, total)
-    }
-    fn detail_fraction(&self) -> f32 {
-        self.inner.detail_fraction()
-    }
     fn seg_input_dim(&self) -> usize {
         self.inner.seg_input_dim()
     }
@@ -93,11 +84,31 @@ impl RadianceField for Poisoned {
     fn save_state(&self) -> Vec<u8> {
         self.inner.save_state()
     }
-    fn load_state(&mut self, b: &[u8]) -> Result<(), String> {
+    fn load_state(&mut self, b: &[u8]) -> Result<(), StateError> {
         self.inner.load_state(b)
     }
     fn num_parameters(&self) -> usize {
         self.inner.num_parameters()
+    }
+    // Every field is wrapped as growing: its step hook counts the poisoned steps.
+    fn coarse_to_fine(&self) -> Option<&dyn CoarseToFine> {
+        Some(self)
+    }
+    fn coarse_to_fine_mut(&mut self) -> Option<&mut dyn CoarseToFine> {
+        Some(self)
+    }
+}
+
+impl CoarseToFine for Poisoned {
+    fn begin_step(&mut self, step: usize, total: usize) -> bool {
+        // One poisoned training step per call while any are left (stage 1).
+        if step > 0 {
+            let _ = self.left.fetch_update(Ordering::Relaxed, Ordering::Relaxed, |v| v.checked_sub(1));
+        }
+        plain::begin_step(self.inner.as_mut(), step, total)
+    }
+    fn detail_fraction(&self) -> f32 {
+        plain::detail_fraction(self.inner.as_ref())
     }
 }
 
@@ -179,6 +190,10 @@ impl RadianceField for Dummy {
     }
     fn backward(&mut self, _: &[Vec3], _: &[Vec3], _: FieldTape, _: &[f32], _: &[[f32; 3]]) {}
     fn step(&mut self, _: f32) {}
+    fn gradients_finite(&self) -> bool {
+        true
+    }
+    fn discard_gradients(&mut self) {}
     fn seg_input_dim(&self) -> usize {
         0
     }
@@ -186,7 +201,7 @@ impl RadianceField for Dummy {
     fn save_state(&self) -> Vec<u8> {
         Vec::new()
     }
-    fn load_state(&mut self, _: &[u8]) -> Result<(), String> {
+    fn load_state(&mut self, _: &[u8]) -> Result<(), StateError> {
         Ok(())
     }
     fn num_parameters(&self) -> usize {

@@ -33,6 +33,33 @@ pub enum ConfigError {
     },
 }
 
+/// A field's saved parameters (a checkpoint's `field` section) cannot be restored.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum StateError {
+    /// The bytes end before the state does.
+    #[error("{kind} state is truncated (the checkpoint is incomplete or damaged)")]
+    Truncated {
+        /// Field kind.
+        kind: String,
+    },
+    /// The bytes are not a state this kind writes.
+    #[error("{kind} state is malformed: {reason}")]
+    Malformed {
+        /// Field kind.
+        kind: String,
+        /// What could not be read.
+        reason: String,
+    },
+    /// A well-formed state of another shape than this config builds.
+    #[error("{kind} state does not fit this config: {reason}")]
+    Mismatch {
+        /// Field kind.
+        kind: String,
+        /// What differs, and which keys may have changed.
+        reason: String,
+    },
+}
+
 /// A plugin could not be built from its (parsed) configuration.
 #[derive(Debug, thiserror::Error)]
 pub enum BuildError {

@@ -12,7 +12,7 @@ use sos_core::metrics::{
     adjusted_rand_index, binary_iou, mean_iou, mean_psnr, mse, psnr_from_mse, psnr_of_mean_mse,
     ssim, ImageQualityReport, SegmentationReport,
 };
-use sos_core::plugin::field::Hierarchical;
+use sos_core::plugin::field::{Hierarchical, HierarchicalSampling};
 use sos_core::plugin::{FieldTape, RadianceField};
 use sos_core::render::composite::{
     composite, composite_backward, weights, RayColor, RayGrad, RaySamples, EMPTY_RAY_ACC,
@@ -346,8 +346,12 @@ impl RadianceField for Constant {
     }
     fn backward(&mut self, _: &[Vec3], _: &[Vec3], _: FieldTape, _: &[f32], _: &[[f32; 3]]) {}
     fn step(&mut self, _: f32) {}
-    fn hierarchical(&self) -> Option<Hierarchical> {
-        self.hierarchical
+    fn gradients_finite(&self) -> bool {
+        true
+    }
+    fn discard_gradients(&mut self) {}
+    fn hierarchical(&self) -> Option<&dyn HierarchicalSampling> {
+        self.hierarchical.is_some().then_some(self as &dyn HierarchicalSampling)
     }
     fn seg_input_dim(&self) -> usize {
         1
@@ -360,11 +364,24 @@ impl RadianceField for Constant {
     fn save_state(&self) -> Vec<u8> {
         Vec::new()
     }
-    fn load_state(&mut self, _: &[u8]) -> Result<(), String> {
+    fn load_state(&mut self, _: &[u8]) -> Result<(), sos_core::error::StateError> {
         Ok(())
     }
     fn num_parameters(&self) -> usize {
         0
+    }
+}
+
+/// The field proposes its own samples (no separate proposal network).
+impl HierarchicalSampling for Constant {
+    fn sampling(&self) -> Hierarchical {
+        self.hierarchical.expect("handed out only when set")
+    }
+    fn proposal(&self) -> Option<&dyn RadianceField> {
+        None
+    }
+    fn proposal_mut(&mut self) -> Option<&mut dyn RadianceField> {
+        None
     }
 }
 

@@ -23,7 +23,7 @@ use rand::{Rng, SeedableRng};
 use sos_core::camera::Vec3;
 use sos_core::config::RunConfig;
 use sos_core::nn::Linear;
-use sos_core::plugin::field::Hierarchical;
+use sos_core::plugin::field::{Hierarchical, HierarchicalSampling};
 use sos_core::plugin::{FieldTape, RadianceField};
 use sos_core::render::composite::{RayColor, RayGrad};
 use sos_core::render::contraction::Contraction;
@@ -103,6 +103,12 @@ impl RadianceField for Timed {
         self.net.step(lr_factor);
         self.stats.step_ns.fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
     }
+    fn gradients_finite(&self) -> bool {
+        self.net.gradients_finite()
+    }
+    fn discard_gradients(&mut self) {
+        self.net.discard_gradients()
+    }
     fn seg_input_dim(&self) -> usize {
         self.net.seg_input_dim()
     }
@@ -112,7 +118,7 @@ impl RadianceField for Timed {
     fn save_state(&self) -> Vec<u8> {
         self.net.save_state()
     }
-    fn load_state(&mut self, b: &[u8]) -> Result<(), String> {
+    fn load_state(&mut self, b: &[u8]) -> Result<(), sos_core::error::StateError> {
         self.net.load_state(b)
     }
     fn num_parameters(&self) -> usize {
@@ -141,14 +147,12 @@ impl RadianceField for Pair {
         self.fine.step(lr_factor);
         self.coarse.step(lr_factor);
     }
-    fn hierarchical(&self) -> Option<Hierarchical> {
-        Some(self.h)
+    fn gradients_finite(&self) -> bool {
+        self.fine.gradients_finite() && self.coarse.gradients_finite()
     }
-    fn coarse(&self) -> Option<&dyn RadianceField> {
-        Some(&self.coarse)
-    }
-    fn coarse_mut(&mut self) -> Option<&mut dyn RadianceField> {
-        Some(&mut self.coarse)
+    fn discard_gradients(&mut self) {
+        self.fine.discard_gradients();
+        self.coarse.discard_gradients();
     }
     fn seg_input_dim(&self) -> usize {
         self.fine.seg_input_dim()
@@ -159,11 +163,29 @@ impl RadianceField for Pair {
     fn save_state(&self) -> Vec<u8> {
         Vec::new()
     }
-    fn load_state(&mut self, _: &[u8]) -> Result<(), String> {
+    fn load_state(&mut self, _: &[u8]) -> Result<(), sos_core::error::StateError> {
         Ok(())
     }
     fn num_parameters(&self) -> usize {
         self.fine.num_parameters() + self.coarse.num_parameters()
+    }
+    fn hierarchical(&self) -> Option<&dyn HierarchicalSampling> {
+        Some(self)
+    }
+    fn hierarchical_mut(&mut self) -> Option<&mut dyn HierarchicalSampling> {
+        Some(self)
+    }
+}
+
+impl HierarchicalSampling for Pair {
+    fn sampling(&self) -> Hierarchical {
+        self.h
+    }
+    fn proposal(&self) -> Option<&dyn RadianceField> {
+        Some(&self.coarse)
+    }
+    fn proposal_mut(&mut self) -> Option<&mut dyn RadianceField> {
+        Some(&mut self.coarse)
     }
 }
 
@@ -347,7 +369,8 @@ fn main() {
         session.field.backward(&r.samples.positions, &r.samples.directions, tape, &gs, &grgb);
         let tape = coarse.tape.take();
         let (p, d) = (&coarse.samples.positions, &coarse.samples.directions);
-        session.field.coarse_mut().expect("coarse network").backward(p, d, tape, &cgs, &cgrgb);
+        let proposal = session.field.hierarchical_mut().and_then(|h| h.proposal_mut()).expect("coarse network");
+        proposal.backward(p, d, tape, &cgs, &cgrgb);
         session.field.step(1.0);
         (t0.elapsed().as_secs_f64(), mse / (n_rays * 3) as f64)
     };

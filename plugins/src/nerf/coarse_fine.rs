@@ -4,7 +4,7 @@
 //! switch is a pure ablation.
 
 use sos_core::camera::Vec3;
-use sos_core::plugin::field::Hierarchical;
+use sos_core::plugin::field::{FrozenPass, Hierarchical, HierarchicalSampling};
 use sos_core::plugin::{FieldTape, RadianceField};
 
 use super::field::{read_params, write_params};
@@ -81,22 +81,6 @@ impl<L: Level> RadianceField for CoarseFine<L> {
         self.coarse.discard_gradients();
     }
 
-    fn hierarchical(&self) -> Option<Hierarchical> {
-        self.sampling
-    }
-
-    fn coarse(&self) -> Option<&dyn RadianceField> {
-        self.sampling.is_some().then_some(&self.coarse as &dyn RadianceField)
-    }
-
-    fn coarse_mut(&mut self) -> Option<&mut dyn RadianceField> {
-        if self.sampling.is_some() {
-            Some(&mut self.coarse)
-        } else {
-            None
-        }
-    }
-
     fn seg_input_dim(&self) -> usize {
         self.fine.seg_input_dim()
     }
@@ -105,43 +89,12 @@ impl<L: Level> RadianceField for CoarseFine<L> {
         self.fine.seg_input(positions, out);
     }
 
-    fn forward_with_seg_input(
-        &self,
-        p: &[Vec3],
-        d: &[Vec3],
-        density: &mut [f32],
-        rgb: &mut [[f32; 3]],
-        seg: &mut [f32],
-    ) {
-        self.fine.forward_with_seg_input(p, d, density, rgb, seg);
-    }
-
-    fn density_state_dim(&self) -> usize {
-        self.fine.density_state_dim()
-    }
-
-    fn density_with_state(&self, p: &[Vec3], density: &mut [f32], state: &mut [f32]) {
-        self.fine.density_with_state(p, density, state);
-    }
-
-    fn colour_from_state(
-        &self,
-        p: &[Vec3],
-        d: &[Vec3],
-        state: &[f32],
-        rows: &[u32],
-        rgb: &mut [[f32; 3]],
-        seg: Option<&mut [f32]>,
-    ) {
-        self.fine.colour_from_state(p, d, state, rows, rgb, seg);
-    }
-
     fn save_state(&self) -> Vec<u8> {
         let nets: Vec<&NerfMlp> = self.fine.mlps().into_iter().chain(self.coarse.mlps()).collect();
         write_params(&nets)
     }
 
-    fn load_state(&mut self, bytes: &[u8]) -> Result<(), String> {
+    fn load_state(&mut self, bytes: &[u8]) -> Result<(), sos_core::error::StateError> {
         let mut nets = self.fine.mlps_mut();
         nets.extend(self.coarse.mlps_mut());
         read_params(bytes, &mut nets)
@@ -150,4 +103,37 @@ impl<L: Level> RadianceField for CoarseFine<L> {
     fn num_parameters(&self) -> usize {
         self.fine.num_parameters() + if self.sampling.is_some() { self.coarse.num_parameters() } else { 0 }
     }
+
+    fn hierarchical(&self) -> Option<&dyn HierarchicalSampling> {
+        self.sampling.is_some().then_some(self as &dyn HierarchicalSampling)
+    }
+
+    fn hierarchical_mut(&mut self) -> Option<&mut dyn HierarchicalSampling> {
+        if self.sampling.is_some() {
+            Some(self)
+        } else {
+            None
+        }
+    }
+
+    // The fine level renders; its fused pass is the field's.
+    fn frozen_pass(&self) -> Option<&dyn FrozenPass> {
+        self.fine.frozen_pass()
+    }
 }
+
+/// Present only when `hierarchical` sampling is configured (see the getters above).
+impl<L: Level> HierarchicalSampling for CoarseFine<L> {
+    fn sampling(&self) -> Hierarchical {
+        self.sampling.expect("hierarchical() hands this out only with sampling")
+    }
+
+    fn proposal(&self) -> Option<&dyn RadianceField> {
+        Some(&self.coarse)
+    }
+
+    fn proposal_mut(&mut self) -> Option<&mut dyn RadianceField> {
+        Some(&mut self.coarse)
+    }
+}
+

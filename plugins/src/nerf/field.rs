@@ -114,6 +114,24 @@ impl RadianceField for NerfNet {
         self.mlp.features(&self.coords(positions), out);
     }
 
+    fn save_state(&self) -> Vec<u8> {
+        write_params(&[&self.mlp])
+    }
+
+    fn load_state(&mut self, bytes: &[u8]) -> Result<(), sos_core::error::StateError> {
+        read_params(bytes, &mut [&mut self.mlp])
+    }
+
+    fn num_parameters(&self) -> usize {
+        self.mlp.num_parameters()
+    }
+    fn frozen_pass(&self) -> Option<&dyn sos_core::plugin::FrozenPass> {
+        Some(self)
+    }
+}
+
+impl sos_core::plugin::FrozenPass for NerfNet {
+
     fn forward_with_seg_input(
         &self,
         positions: &[Vec3],
@@ -145,18 +163,6 @@ impl RadianceField for NerfNet {
         let coords = if seg_input.is_some() { self.coords(positions) } else { Vec::new() };
         self.mlp.colour_from_trunk(state, rows, &coords, directions, rgb, seg_input);
     }
-
-    fn save_state(&self) -> Vec<u8> {
-        write_params(&[&self.mlp])
-    }
-
-    fn load_state(&mut self, bytes: &[u8]) -> Result<(), String> {
-        read_params(bytes, &mut [&mut self.mlp])
-    }
-
-    fn num_parameters(&self) -> usize {
-        self.mlp.num_parameters()
-    }
 }
 
 /// Writes networks as: `u64` header length, a JSON header of parameter sizes, then every
@@ -179,24 +185,28 @@ pub fn write_params(nets: &[&NerfMlp]) -> Vec<u8> {
 }
 
 /// Restores networks written by [`write_params`]; the sizes must match the configured networks.
-pub fn read_params(bytes: &[u8], nets: &mut [&mut NerfMlp]) -> Result<(), String> {
-    let truncated = || "nerf state is truncated".to_string();
+pub fn read_params(bytes: &[u8], nets: &mut [&mut NerfMlp]) -> Result<(), sos_core::error::StateError> {
+    use sos_core::error::StateError;
+    let kind = || "nerf".to_string();
+    let truncated = || StateError::Truncated { kind: kind() };
+    let malformed = |e: serde_json::Error| StateError::Malformed { kind: kind(), reason: format!("header: {e}") };
     let len = u64::from_le_bytes(bytes.get(..8).ok_or_else(truncated)?.try_into().map_err(|_| truncated())?) as usize;
     let header: serde_json::Value =
-        serde_json::from_slice(bytes.get(8..8usize.saturating_add(len)).ok_or_else(truncated)?)
-            .map_err(|e| format!("nerf state header: {e}"))?;
-    let sizes: Vec<Vec<usize>> =
-        serde_json::from_value(header["sizes"].clone()).map_err(|e| format!("nerf state header: {e}"))?;
+        serde_json::from_slice(bytes.get(8..8usize.saturating_add(len)).ok_or_else(truncated)?).map_err(malformed)?;
+    let sizes: Vec<Vec<usize>> = serde_json::from_value(header["sizes"].clone()).map_err(malformed)?;
     let want: Vec<Vec<usize>> = nets.iter().map(|m| m.params().iter().map(|p| p.len()).collect()).collect();
     if sizes != want {
-        return Err(format!(
-            "nerf state holds {} network(s) with {} parameters but the config builds {} with {} \
-             (were depth, width, frequencies or `hierarchical` changed?)",
-            sizes.len(),
-            sizes.iter().flatten().sum::<usize>(),
-            want.len(),
-            want.iter().flatten().sum::<usize>()
-        ));
+        return Err(StateError::Mismatch {
+            kind: kind(),
+            reason: format!(
+                "it holds {} network(s) with {} parameters but the config builds {} with {} \
+                 (were depth, width, frequencies or `hierarchical` changed?)",
+                sizes.len(),
+                sizes.iter().flatten().sum::<usize>(),
+                want.len(),
+                want.iter().flatten().sum::<usize>()
+            ),
+        });
     }
     let mut body = &bytes[8 + len..];
     let total: usize = sizes.iter().flatten().sum();
@@ -270,11 +280,12 @@ mod tests {
         assert_eq!(eval(&a), eval(&b));
         assert_eq!(b.save_state(), bytes);
         assert_eq!(a.networks()[1].mlp, b.networks()[1].mlp);
-        assert!(b.load_state(&bytes[..bytes.len() - 4]).is_err());
+        assert!(matches!(b.load_state(&bytes[..bytes.len() - 4]), Err(sos_core::error::StateError::Truncated { .. })));
         let extent = SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] };
         let mut wide = NerfField::new(NerfConfig { width: 9, ..tiny_config() }, Contraction::new(&extent), 0);
         let err = wide.load_state(&bytes).unwrap_err();
-        assert!(err.contains("width"), "{err}");
+        assert!(matches!(err, sos_core::error::StateError::Mismatch { .. }), "{err}");
+        assert!(err.to_string().contains("width"), "{err}");
     }
 
     #[test]
@@ -293,12 +304,14 @@ mod tests {
     #[test]
     fn hierarchical_switch_hands_out_the_coarse_network() {
         let mut f = field(0);
-        assert_eq!(f.hierarchical(), Some(Hierarchical { coarse_samples: 64, fine_samples: 128 }));
-        assert!(f.coarse().is_some() && f.coarse_mut().is_some());
+        let h = f.hierarchical().expect("hierarchical sampling is on by default");
+        assert_eq!(h.sampling(), Hierarchical { coarse_samples: 64, fine_samples: 128 });
+        assert!(h.proposal().is_some());
+        assert!(f.hierarchical_mut().and_then(|h| h.proposal_mut()).is_some());
         let n_both = f.num_parameters();
         let extent = SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] };
         let f = NerfField::new(NerfConfig { hierarchical: false, ..tiny_config() }, Contraction::new(&extent), 0);
-        assert!(f.hierarchical().is_none() && f.coarse().is_none());
+        assert!(f.hierarchical().is_none());
         assert_eq!(2 * f.num_parameters(), n_both);
     }
 }

@@ -293,6 +293,24 @@ impl RadianceField for NerfPpNet {
         self.encode_positions(positions, out);
     }
 
+    fn save_state(&self) -> Vec<u8> {
+        write_params(&self.mlps())
+    }
+
+    fn load_state(&mut self, bytes: &[u8]) -> Result<(), sos_core::error::StateError> {
+        read_params(bytes, &mut self.mlps_mut())
+    }
+
+    fn num_parameters(&self) -> usize {
+        self.mlps().iter().map(|m| m.num_parameters()).sum()
+    }
+    fn frozen_pass(&self) -> Option<&dyn sos_core::plugin::FrozenPass> {
+        Some(self)
+    }
+}
+
+impl sos_core::plugin::FrozenPass for NerfPpNet {
+
     fn forward_with_seg_input(
         &self,
         positions: &[Vec3],
@@ -361,18 +379,6 @@ impl RadianceField for NerfPpNet {
             self.encode_positions(positions, seg);
         }
     }
-
-    fn save_state(&self) -> Vec<u8> {
-        write_params(&self.mlps())
-    }
-
-    fn load_state(&mut self, bytes: &[u8]) -> Result<(), String> {
-        read_params(bytes, &mut self.mlps_mut())
-    }
-
-    fn num_parameters(&self) -> usize {
-        self.mlps().iter().map(|m| m.num_parameters()).sum()
-    }
 }
 
 /// The `nerf++` field: fine and coarse levels.
@@ -393,6 +399,7 @@ impl CoarseFine<NerfPpNet> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use sos_core::plugin::FrozenPass;
     use sos_core::scene::SceneExtent;
 
     fn tiny() -> NerfPpConfig {

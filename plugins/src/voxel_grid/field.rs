@@ -3,7 +3,7 @@
 use rayon::prelude::*;
 use sos_core::camera::Vec3;
 use sos_core::encoding::{positional_encoding, positional_encoding_dim, sh_basis, sh_coefficients};
-use sos_core::plugin::{FieldTape, RadianceField};
+use sos_core::plugin::{CoarseToFine, FieldTape, RadianceField, Regularized};
 use sos_core::render::contraction::Contraction;
 use sos_core::scene::SceneExtent;
 
@@ -252,39 +252,6 @@ impl RadianceField for VoxelGridField {
         }
     }
 
-    fn regularize(&mut self) -> f64 {
-        // Total variation between each touched vertex and its +x, +y, +z neighbours:
-        // λ Σ (v_n − v)², gradient ±2λ(v_n − v). Neighbours become touched too.
-        let (tv_d, tv_c) = (self.config.tv_density, self.config.tv_color);
-        if tv_d == 0.0 && tv_c == 0.0 {
-            return 0.0;
-        }
-        let ch = self.grid.channels;
-        let [rx, ry, rz] = self.grid.res;
-        let strides = [1usize, rx, rx * ry];
-        let mut value = 0.0f64;
-        let base: Vec<u32> = self.touched.clone();
-        for v in base {
-            let v = v as usize;
-            let (x, y, z) = (v % rx, (v / rx) % ry, v / (rx * ry));
-            let coord = [x, y, z];
-            for a in 0..3 {
-                if coord[a] + 1 >= [rx, ry, rz][a] {
-                    continue;
-                }
-                let n = v + strides[a];
-                self.touch(n as u32);
-                for j in 0..ch {
-                    let lambda = if j == 0 { tv_d } else { tv_c };
-                    let d = self.grid.data[n * ch + j] - self.grid.data[v * ch + j];
-                    value += (lambda * d * d) as f64;
-                    self.grads[n * ch + j] += 2.0 * lambda * d;
-                    self.grads[v * ch + j] -= 2.0 * lambda * d;
-                }
-            }
-        }
-        value
-    }
 
     fn step(&mut self, lr_factor: f32) {
         let ch = self.grid.channels;
@@ -309,24 +276,7 @@ impl RadianceField for VoxelGridField {
         self.touched.clear();
     }
 
-    fn begin_step(&mut self, step: usize, total_steps: usize) -> bool {
-        let schedule = &self.config.upsample_at;
-        if self.next_growth < schedule.len()
-            && step as f32 >= schedule[self.next_growth] * total_steps as f32
-        {
-            self.next_growth += 1;
-            let res = self.scheduled_resolution(self.next_growth);
-            self.grow_to(res);
-            return true;
-        }
-        false
-    }
 
-    fn detail_fraction(&self) -> f32 {
-        let now: usize = self.grid.res.iter().sum();
-        let full: usize = self.config.resolution.iter().sum();
-        now as f32 / full as f32
-    }
 
     fn seg_input_dim(&self) -> usize {
         positional_encoding_dim(3, self.config.seg_frequencies) + SEG_EXTRA
@@ -375,18 +325,26 @@ impl RadianceField for VoxelGridField {
         out
     }
 
-    fn load_state(&mut self, bytes: &[u8]) -> Result<(), String> {
-        let too_short = || "voxel-grid state is truncated".to_string();
+    fn load_state(&mut self, bytes: &[u8]) -> Result<(), sos_core::error::StateError> {
+        use sos_core::error::StateError;
+        let kind = || "voxel-grid".to_string();
+        let too_short = || StateError::Truncated { kind: kind() };
+        let malformed = |reason: String| StateError::Malformed { kind: kind(), reason };
         let len = u64::from_le_bytes(bytes.get(..8).ok_or_else(too_short)?.try_into().expect("8 bytes")) as usize;
-        let header: serde_json::Value = serde_json::from_slice(bytes.get(8..8 + len).ok_or_else(too_short)?)
-            .map_err(|e| format!("voxel-grid state header: {e}"))?;
-        let res: [usize; 3] = serde_json::from_value(header["res"].clone()).map_err(|e| e.to_string())?;
-        let channels = header["channels"].as_u64().ok_or("voxel-grid state: no channels")? as usize;
+        let header: serde_json::Value = serde_json::from_slice(bytes.get(8..8usize.saturating_add(len)).ok_or_else(too_short)?)
+            .map_err(|e| malformed(format!("header: {e}")))?;
+        let res: [usize; 3] =
+            serde_json::from_value(header["res"].clone()).map_err(|e| malformed(format!("resolution: {e}")))?;
+        let channels =
+            header["channels"].as_u64().ok_or_else(|| malformed("the header has no channel count".into()))? as usize;
         if channels != self.grid.channels {
-            return Err(format!(
-                "voxel-grid state has {channels} channels per vertex but the config implies {} (sh_degree changed?)",
-                self.grid.channels
-            ));
+            return Err(StateError::Mismatch {
+                kind: kind(),
+                reason: format!(
+                    "it has {channels} channels per vertex but the config implies {} (sh_degree changed?)",
+                    self.grid.channels
+                ),
+            });
         }
         let body = &bytes[8 + len..];
         let n = res[0] * res[1] * res[2] * channels;
@@ -403,6 +361,80 @@ impl RadianceField for VoxelGridField {
 
     fn num_parameters(&self) -> usize {
         self.grid.data.len()
+    }
+
+    fn coarse_to_fine(&self) -> Option<&dyn CoarseToFine> {
+        Some(self)
+    }
+
+    fn coarse_to_fine_mut(&mut self) -> Option<&mut dyn CoarseToFine> {
+        Some(self)
+    }
+
+    fn regularized(&mut self) -> Option<&mut dyn Regularized> {
+        // Without weights there is nothing to add; the trainer then skips the pass.
+        if self.config.tv_density == 0.0 && self.config.tv_color == 0.0 {
+            None
+        } else {
+            Some(self)
+        }
+    }
+}
+
+impl CoarseToFine for VoxelGridField {
+    fn begin_step(&mut self, step: usize, total_steps: usize) -> bool {
+        let schedule = &self.config.upsample_at;
+        if self.next_growth < schedule.len()
+            && step as f32 >= schedule[self.next_growth] * total_steps as f32
+        {
+            self.next_growth += 1;
+            let res = self.scheduled_resolution(self.next_growth);
+            self.grow_to(res);
+            return true;
+        }
+        false
+    }
+
+    fn detail_fraction(&self) -> f32 {
+        let now: usize = self.grid.res.iter().sum();
+        let full: usize = self.config.resolution.iter().sum();
+        now as f32 / full as f32
+    }
+}
+
+impl Regularized for VoxelGridField {
+    fn regularize(&mut self) -> f64 {
+        // Total variation between each touched vertex and its +x, +y, +z neighbours:
+        // λ Σ (v_n − v)², gradient ±2λ(v_n − v). Neighbours become touched too.
+        let (tv_d, tv_c) = (self.config.tv_density, self.config.tv_color);
+        if tv_d == 0.0 && tv_c == 0.0 {
+            return 0.0;
+        }
+        let ch = self.grid.channels;
+        let [rx, ry, rz] = self.grid.res;
+        let strides = [1usize, rx, rx * ry];
+        let mut value = 0.0f64;
+        let base: Vec<u32> = self.touched.clone();
+        for v in base {
+            let v = v as usize;
+            let (x, y, z) = (v % rx, (v / rx) % ry, v / (rx * ry));
+            let coord = [x, y, z];
+            for a in 0..3 {
+                if coord[a] + 1 >= [rx, ry, rz][a] {
+                    continue;
+                }
+                let n = v + strides[a];
+                self.touch(n as u32);
+                for j in 0..ch {
+                    let lambda = if j == 0 { tv_d } else { tv_c };
+                    let d = self.grid.data[n * ch + j] - self.grid.data[v * ch + j];
+                    value += (lambda * d * d) as f64;
+                    self.grads[n * ch + j] += 2.0 * lambda * d;
+                    self.grads[v * ch + j] -= 2.0 * lambda * d;
+                }
+            }
+        }
+        value
     }
 }
 
@@ -485,6 +517,6 @@ mod tests {
         let mut g = field();
         g.load_state(&bytes).unwrap();
         assert_eq!(g.grid.data, f.grid.data);
-        assert!(g.load_state(&bytes[..bytes.len() - 3]).is_err());
+        assert!(matches!(g.load_state(&bytes[..bytes.len() - 3]), Err(sos_core::error::StateError::Truncated { .. })));
     }
 }

@@ -5,7 +5,7 @@
 use std::any::Any;
 
 use crate::camera::Vec3;
-use crate::error::BuildError;
+use crate::error::{BuildError, StateError};
 use crate::registry::Registration;
 use crate::scene::SceneExtent;
 
@@ -24,11 +24,31 @@ pub struct Hierarchical {
     pub fine_samples: usize,
 }
 
-/// A trainable radiance field (hot path).
+/// A trainable radiance field (hot path): the methods every field implements. Optimisations
+/// that only some fields can offer are capabilities a field opts into by returning itself
+/// from the matching getter ([`RadianceField::hierarchical`], [`RadianceField::frozen_pass`],
+/// [`RadianceField::coarse_to_fine`], [`RadianceField::regularized`]); a field that does not
+/// opt in gets the core's plain path and loses nothing but speed.
 ///
-/// # Shapes
-/// All slices are packed per sample: `positions[n]`, `directions[n]` (unit vectors),
-/// `density[n]` (post-activation, `>= 0`), `rgb[n]` (in `(0, 1)`), `seg_input[n * seg_input_dim]`.
+/// # Shapes and units
+/// All slices are packed per sample: `positions[n]` (world coordinates, the scene's units),
+/// `directions[n]` (unit vectors), `density[n]` (post-activation, `>= 0`, per world unit of
+/// ray length: a ray segment of length `δ` has opacity `1 − exp(−density · δ)`), `rgb[n]` (in
+/// `(0, 1)`), `seg_input[n * seg_input_dim]`. The field lives in the coordinates of the
+/// [`SceneExtent`] it was built for.
+///
+/// # Threading and determinism
+/// The renderer calls the `&self` methods from several rayon workers at once, on disjoint
+/// chunks of samples; `backward` is called once per chunk from one thread at a time. The
+/// result of every method must depend only on its inputs and the parameters: no hidden
+/// random state, no dependence on the chunking or the thread count. Runs are reproduced bit
+/// for bit from a seed, so a field that sums over samples must do so in a fixed order.
+///
+/// # Gradients
+/// `backward` accumulates; `step` applies and clears. The trainers ask
+/// [`RadianceField::gradients_finite`] before every step and call
+/// [`RadianceField::discard_gradients`] instead of stepping when it says no, so both are part
+/// of the contract rather than defaults a field could forget.
 pub trait RadianceField: Send + Sync {
     /// Density (post-activation) at world positions; the cheap path used for empty-space
     /// skipping and occupancy updates.
@@ -56,56 +76,16 @@ pub trait RadianceField: Send + Sync {
         grad_rgb: &[[f32; 3]],
     );
 
-    /// Adds the field's own regularisers (e.g. total variation) to the accumulated
-    /// gradients; returns their value for logging.
-    fn regularize(&mut self) -> f64 {
-        0.0
-    }
-
     /// Applies accumulated gradients (the field owns its optimiser state) scaled by the
     /// schedule's learning-rate factor, then clears them.
     fn step(&mut self, lr_factor: f32);
 
-    /// Whether every gradient accumulated since the last [`RadianceField::step`] is finite
-    /// (trainers check it before stepping; the default trusts the field).
-    fn gradients_finite(&self) -> bool {
-        true
-    }
+    /// Whether every gradient accumulated since the last [`RadianceField::step`] is finite.
+    fn gradients_finite(&self) -> bool;
 
     /// Drops the gradients accumulated since the last step without applying them (a step with
-    /// a non-finite loss or gradient is skipped this way). Fields that accumulate must
-    /// implement it; the default does nothing.
-    fn discard_gradients(&mut self) {}
-
-    /// Called at the start of every stage-1 step; grids use it to grow coarse-to-fine.
-    /// Returns true when the parametrisation changed (so occupancy must be rebuilt).
-    fn begin_step(&mut self, _step: usize, _total_steps: usize) -> bool {
-        false
-    }
-
-    /// Fraction of its final spatial detail the field currently resolves (grids growing
-    /// coarse-to-fine return their current/final resolution); the renderer scales the number
-    /// of candidate samples by it, so coarse stages are cheap.
-    fn detail_fraction(&self) -> f32 {
-        1.0
-    }
-
-    /// Hierarchical sampling this field wants, if any (default: single-pass marching).
-    fn hierarchical(&self) -> Option<Hierarchical> {
-        None
-    }
-
-    /// The separate proposal ("coarse") network of a hierarchical field; `None` when the
-    /// field proposes its own samples. Its gradients are applied by the owner's
-    /// [`RadianceField::step`].
-    fn coarse(&self) -> Option<&dyn RadianceField> {
-        None
-    }
-
-    /// Mutable access to the proposal network, for its backward pass.
-    fn coarse_mut(&mut self) -> Option<&mut dyn RadianceField> {
-        None
-    }
+    /// a non-finite loss or gradient is skipped this way).
+    fn discard_gradients(&mut self);
 
     /// Width of the per-sample segmentation input.
     fn seg_input_dim(&self) -> usize;
@@ -114,9 +94,65 @@ pub trait RadianceField: Send + Sync {
     /// of the contracted position), `[n, seg_input_dim]`. Treated as constant in stage 2.
     fn seg_input(&self, positions: &[Vec3], out: &mut [f32]);
 
-    /// Density, colour and segmentation input at the same samples, without a tape (stage 2,
-    /// where the field is frozen). Fields whose segmentation input falls out of their forward
-    /// pass (NeRF's final trunk activations) override this to run that pass once.
+    /// Serialises all parameters (checkpoints).
+    fn save_state(&self) -> Vec<u8>;
+
+    /// Restores parameters written by [`RadianceField::save_state`] of the same kind.
+    fn load_state(&mut self, bytes: &[u8]) -> Result<(), StateError>;
+
+    /// Number of trainable scalars (reported by `sos train`).
+    fn num_parameters(&self) -> usize;
+
+    /// Hierarchical sampling, when the field wants it (default: single-pass marching).
+    fn hierarchical(&self) -> Option<&dyn HierarchicalSampling> {
+        None
+    }
+
+    /// Mutable access to the hierarchical sampling, for the proposal's backward pass.
+    fn hierarchical_mut(&mut self) -> Option<&mut dyn HierarchicalSampling> {
+        None
+    }
+
+    /// A fused pass for frozen renders (default: the plain path of [`plain`]).
+    fn frozen_pass(&self) -> Option<&dyn FrozenPass> {
+        None
+    }
+
+    /// A parametrisation that grows during stage 1 (default: fixed).
+    fn coarse_to_fine(&self) -> Option<&dyn CoarseToFine> {
+        None
+    }
+
+    /// Mutable access to the growing parametrisation, to grow it.
+    fn coarse_to_fine_mut(&mut self) -> Option<&mut dyn CoarseToFine> {
+        None
+    }
+
+    /// The field's own regularisers (default: none).
+    fn regularized(&mut self) -> Option<&mut dyn Regularized> {
+        None
+    }
+}
+
+/// Capability: NeRF's hierarchical sampling (see [`Hierarchical`]).
+pub trait HierarchicalSampling: Send + Sync {
+    /// Samples the renderer draws for the proposal and for the field.
+    fn sampling(&self) -> Hierarchical;
+
+    /// The separate proposal ("coarse") network; `None` when the field proposes its own
+    /// samples. Its gradients are applied by the owner's [`RadianceField::step`].
+    fn proposal(&self) -> Option<&dyn RadianceField>;
+
+    /// Mutable access to the proposal network, for its backward pass.
+    fn proposal_mut(&mut self) -> Option<&mut dyn RadianceField>;
+}
+
+/// Capability: a frozen render's fused passes, for fields whose colour and segmentation input
+/// fall out of work the density already did (NeRF's final trunk activations). Each method has
+/// the plain path as its default, so a field overrides only the passes it can fuse; every
+/// override must equal the plain path bit for bit.
+pub trait FrozenPass: RadianceField {
+    /// Density, colour and segmentation input at the same samples, in one pass.
     fn forward_with_seg_input(
         &self,
         positions: &[Vec3],
@@ -125,31 +161,25 @@ pub trait RadianceField: Send + Sync {
         rgb: &mut [[f32; 3]],
         seg_input: &mut [f32],
     ) {
-        self.forward(positions, directions, density, rgb, false);
-        self.seg_input(positions, seg_input);
+        plain::forward_then_seg_input(self, positions, directions, density, rgb, seg_input)
     }
 
-    /// Width of the per-sample state that [`RadianceField::density_with_state`] writes so that
-    /// [`RadianceField::colour_from_state`] needs no second pass of the density network (NeRF's
-    /// final trunk activations); 0, the default, for fields that keep none. A frozen render
-    /// with a density pass (early termination, weight threshold) then evaluates the network's
-    /// trunk once per kept sample instead of twice.
+    /// Width of the per-sample state [`FrozenPass::density_with_state`] writes so that
+    /// [`FrozenPass::colour_from_state`] needs no second pass of the density network. A frozen
+    /// render with a density pass (early termination, weight threshold) then evaluates the
+    /// network's trunk once per kept sample instead of twice. 0: no state is kept.
     fn density_state_dim(&self) -> usize {
         0
     }
 
     /// [`RadianceField::density`] that also writes each sample's state,
-    /// `state[n * density_state_dim]`. Only called when [`RadianceField::density_state_dim`]
-    /// is positive.
-    fn density_with_state(&self, positions: &[Vec3], density: &mut [f32], state: &mut [f32]) {
-        debug_assert!(state.is_empty(), "a field with state must override density_with_state");
+    /// `state[n * density_state_dim]`.
+    fn density_with_state(&self, positions: &[Vec3], density: &mut [f32], _state: &mut [f32]) {
         self.density(positions, density);
     }
 
     /// Colour, and the segmentation input when `seg_input` is given, of samples whose state an
-    /// earlier [`RadianceField::density_with_state`] wrote: sample `j` reads state row
-    /// `rows[j]`. Equal to the matching outputs of [`RadianceField::forward`] and
-    /// [`RadianceField::seg_input`]; the default recomputes them that way.
+    /// earlier [`FrozenPass::density_with_state`] wrote: sample `j` reads state row `rows[j]`.
     fn colour_from_state(
         &self,
         positions: &[Vec3],
@@ -159,21 +189,130 @@ pub trait RadianceField: Send + Sync {
         rgb: &mut [[f32; 3]],
         seg_input: Option<&mut [f32]>,
     ) {
-        let mut density = vec![0.0; positions.len()];
-        self.forward(positions, directions, &mut density, rgb, false);
-        if let Some(seg) = seg_input {
-            self.seg_input(positions, seg);
+        plain::colour(self, positions, directions, rgb, seg_input)
+    }
+}
+
+/// Capability: a parametrisation that grows coarse-to-fine during stage 1 (grids).
+pub trait CoarseToFine: Send + Sync {
+    /// Called at the start of every stage-1 step. Returns true when the parametrisation
+    /// changed (so occupancy must be rebuilt).
+    fn begin_step(&mut self, step: usize, total_steps: usize) -> bool;
+
+    /// Fraction of its final spatial detail the field currently resolves (current/final
+    /// resolution); the renderer scales the number of candidate samples by it, so coarse
+    /// stages are cheap.
+    fn detail_fraction(&self) -> f32;
+}
+
+/// Capability: regularisers the field adds to its own gradients (e.g. total variation).
+pub trait Regularized: Send + Sync {
+    /// Adds the regularisers' gradients to the accumulated ones; returns their value for
+    /// logging.
+    fn regularize(&mut self) -> f64;
+}
+
+/// The core's side of each capability: the fast path where the field offers it, the plain
+/// path (the trait's required methods) where it does not.
+pub mod plain {
+    use super::{RadianceField, Vec3};
+
+    /// Density, colour and segmentation input at the same samples: the field's fused pass, or
+    /// [`forward_then_seg_input`].
+    pub fn forward_with_seg_input(
+        field: &dyn RadianceField,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        density: &mut [f32],
+        rgb: &mut [[f32; 3]],
+        seg_input: &mut [f32],
+    ) {
+        match field.frozen_pass() {
+            Some(fast) => fast.forward_with_seg_input(positions, directions, density, rgb, seg_input),
+            None => forward_then_seg_input(field, positions, directions, density, rgb, seg_input),
         }
     }
 
-    /// Serialises all parameters (checkpoints).
-    fn save_state(&self) -> Vec<u8>;
+    /// The plain path of [`forward_with_seg_input`]: the forward pass, then the segmentation
+    /// input.
+    pub fn forward_then_seg_input<F: RadianceField + ?Sized>(
+        field: &F,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        density: &mut [f32],
+        rgb: &mut [[f32; 3]],
+        seg_input: &mut [f32],
+    ) {
+        field.forward(positions, directions, density, rgb, false);
+        field.seg_input(positions, seg_input);
+    }
 
-    /// Restores parameters written by [`RadianceField::save_state`] of the same kind.
-    fn load_state(&mut self, bytes: &[u8]) -> Result<(), String>;
+    /// Width of the state [`density_with_state`] keeps per sample (0 without a fused pass).
+    pub fn density_state_dim(field: &dyn RadianceField) -> usize {
+        field.frozen_pass().map_or(0, |fast| fast.density_state_dim())
+    }
 
-    /// Number of trainable scalars (reported by `sos train`).
-    fn num_parameters(&self) -> usize;
+    /// Density, and each sample's state when the field keeps one.
+    pub fn density_with_state(field: &dyn RadianceField, positions: &[Vec3], density: &mut [f32], state: &mut [f32]) {
+        match field.frozen_pass() {
+            Some(fast) if fast.density_state_dim() > 0 => fast.density_with_state(positions, density, state),
+            _ => field.density(positions, density),
+        }
+    }
+
+    /// Colour (and segmentation input) of samples whose state [`density_with_state`] wrote;
+    /// without kept state, recomputed by the field's forward pass.
+    pub fn colour_from_state(
+        field: &dyn RadianceField,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        state: &[f32],
+        rows: &[u32],
+        rgb: &mut [[f32; 3]],
+        seg_input: Option<&mut [f32]>,
+    ) {
+        match field.frozen_pass() {
+            Some(fast) if fast.density_state_dim() > 0 => {
+                fast.colour_from_state(positions, directions, state, rows, rgb, seg_input)
+            }
+            _ => colour(field, positions, directions, rgb, seg_input),
+        }
+    }
+
+    /// Colour (and segmentation input) by the field's plain forward pass.
+    pub fn colour<F: RadianceField + ?Sized>(
+        field: &F,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        rgb: &mut [[f32; 3]],
+        seg_input: Option<&mut [f32]>,
+    ) {
+        let mut density = vec![0.0; positions.len()];
+        field.forward(positions, directions, &mut density, rgb, false);
+        if let Some(seg) = seg_input {
+            field.seg_input(positions, seg);
+        }
+    }
+
+    /// Hierarchical sampling, if the field asks for it.
+    pub fn hierarchical(field: &dyn RadianceField) -> Option<super::Hierarchical> {
+        field.hierarchical().map(|h| h.sampling())
+    }
+
+    /// Starts a stage-1 step; true when the parametrisation changed.
+    pub fn begin_step(field: &mut dyn RadianceField, step: usize, total_steps: usize) -> bool {
+        field.coarse_to_fine_mut().is_some_and(|c| c.begin_step(step, total_steps))
+    }
+
+    /// Fraction of its final detail the field resolves (1 for fixed parametrisations).
+    pub fn detail_fraction(field: &dyn RadianceField) -> f32 {
+        field.coarse_to_fine().map_or(1.0, |c| c.detail_fraction())
+    }
+
+    /// Applies the field's regularisers; their value (0 without any).
+    pub fn regularize(field: &mut dyn RadianceField) -> f64 {
+        field.regularized().map_or(0.0, |r| r.regularize())
+    }
 }
 
 /// Configuration of a radiance field, chosen by `[field] kind = "..."`.

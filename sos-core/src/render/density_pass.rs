@@ -5,6 +5,7 @@
 //! ([`RadianceField::density_state_dim`], NeRF's trunk activations) hands it over for the kept
 //! candidates, so that a frozen render's colour pass does not run the density network again.
 
+use crate::plugin::field::plain;
 use crate::plugin::RadianceField;
 use crate::render::sampler::Samples;
 
@@ -84,7 +85,7 @@ pub fn density_pass(
     mut buffer: Vec<f32>,
 ) -> DensityPass {
     let n = candidates.len();
-    let dim = field.density_state_dim();
+    let dim = plain::density_state_dim(field);
     let limit = state_budget / std::mem::size_of::<f32>();
     let mut state = (dim > 0 && n > 0 && limit >= dim).then(|| {
         // Reserved, not touched: pages are only committed as rows arrive. A buffer too small
@@ -130,7 +131,7 @@ pub fn density_pass(
             values.resize(idx.len(), 0.0);
             if state.is_some() {
                 group_state.resize(idx.len() * dim, 0.0);
-                field.density_with_state(&positions, &mut values, &mut group_state);
+                plain::density_with_state(field, &positions, &mut values, &mut group_state);
             } else {
                 field.density(&positions, &mut values);
             }
@@ -194,19 +195,6 @@ mod tests {
                 *d = (10.0 * p[0]).max(0.0);
             }
         }
-        fn density_state_dim(&self) -> usize {
-            if self.with_state {
-                3
-            } else {
-                0
-            }
-        }
-        fn density_with_state(&self, positions: &[Vec3], density: &mut [f32], state: &mut [f32]) {
-            self.density(positions, density);
-            for (p, s) in positions.iter().zip(state.chunks_exact_mut(3)) {
-                s.copy_from_slice(p);
-            }
-        }
         fn forward(&self, _: &[Vec3], _: &[Vec3], _: &mut [f32], _: &mut [[f32; 3]], _: bool) -> FieldTape {
             unreachable!("the density pass only reads density")
         }
@@ -219,11 +207,34 @@ mod tests {
         fn save_state(&self) -> Vec<u8> {
             Vec::new()
         }
-        fn load_state(&mut self, _: &[u8]) -> Result<(), String> {
+        fn load_state(&mut self, _: &[u8]) -> Result<(), crate::error::StateError> {
             Ok(())
         }
         fn num_parameters(&self) -> usize {
             0
+        }
+        fn gradients_finite(&self) -> bool {
+            true
+        }
+        fn discard_gradients(&mut self) {}
+        fn frozen_pass(&self) -> Option<&dyn crate::plugin::field::FrozenPass> {
+            Some(self)
+        }
+    }
+
+    impl crate::plugin::field::FrozenPass for Ramp {
+        fn density_state_dim(&self) -> usize {
+            if self.with_state {
+                3
+            } else {
+                0
+            }
+        }
+        fn density_with_state(&self, positions: &[Vec3], density: &mut [f32], state: &mut [f32]) {
+            self.density(positions, density);
+            for (p, s) in positions.iter().zip(state.chunks_exact_mut(3)) {
+                s.copy_from_slice(p);
+            }
         }
     }
 

@@ -14,7 +14,7 @@ use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
 use crate::camera::Vec3;
-use crate::plugin::field::Hierarchical;
+use crate::plugin::field::{plain, Hierarchical};
 use crate::plugin::{FieldTape, RadianceField};
 use crate::render::composite::{self, RayColor, RayGrad, RaySamples};
 use crate::render::contraction::Contraction;
@@ -181,7 +181,7 @@ fn evaluate(
     if !record {
         let mut seg = seg.buffer(field, n, buffers);
         if !seg.is_empty() {
-            field.forward_with_seg_input(&samples.positions, &samples.directions, &mut density, &mut rgb, &mut seg);
+            plain::forward_with_seg_input(field, &samples.positions, &samples.directions, &mut density, &mut rgb, &mut seg);
             return (density, rgb, None, seg);
         }
     }
@@ -203,7 +203,15 @@ fn finish_from_state(
     let density = kept.iter().map(|&i| sigma[i as usize]).collect();
     let mut rgb = vec![[0.0; 3]; samples.len()];
     let seg_out = (!seg.is_empty()).then_some(&mut seg[..]);
-    field.colour_from_state(&samples.positions, &samples.directions, &state.values, &state.rows(kept), &mut rgb, seg_out);
+    plain::colour_from_state(
+        field,
+        &samples.positions,
+        &samples.directions,
+        &state.values,
+        &state.rows(kept),
+        &mut rgb,
+        seg_out,
+    );
     (density, rgb, None, seg)
 }
 
@@ -218,7 +226,7 @@ fn render_impl(
     rng: &mut impl Rng,
 ) -> Rendered {
     let timer = std::time::Instant::now();
-    let (candidates, coarse) = match field.hierarchical() {
+    let (candidates, coarse) = match plain::hierarchical(field) {
         Some(h) => propose(field, ctx, rays, options, h, record, rng),
         None => (march_parallel(ctx, rays, options.march, rng), None),
     };
@@ -299,7 +307,7 @@ fn propose(
     record: bool,
     rng: &mut impl Rng,
 ) -> (Samples, Option<Box<Rendered>>) {
-    let proposal = field.coarse().unwrap_or(field);
+    let proposal = field.hierarchical().and_then(|h| h.proposal()).unwrap_or(field);
     // Strata midpoints, then (training) one uniform draw inside each stratum.
     let march = MarchOptions { steps: h.coarse_samples.max(1), stratified: false };
     let mut coarse = march_parallel(ctx, rays, march, rng);
@@ -601,6 +609,51 @@ mod tests {
             }
             None
         }
+        fn backward(&mut self, _: &[Vec3], _: &[Vec3], _: FieldTape, _: &[f32], _: &[[f32; 3]]) {}
+        fn step(&mut self, _: f32) {}
+        fn gradients_finite(&self) -> bool {
+            true
+        }
+        fn discard_gradients(&mut self) {}
+        fn hierarchical(&self) -> Option<&dyn crate::plugin::field::HierarchicalSampling> {
+            self.hierarchical.is_some().then_some(self as &dyn crate::plugin::field::HierarchicalSampling)
+        }
+        fn seg_input_dim(&self) -> usize {
+            2
+        }
+        fn seg_input(&self, p: &[Vec3], out: &mut [f32]) {
+            for (p, row) in p.iter().zip(out.chunks_exact_mut(2)) {
+                row.copy_from_slice(&[p[0], p[1] * p[2]]);
+            }
+        }
+        fn save_state(&self) -> Vec<u8> {
+            Vec::new()
+        }
+        fn load_state(&mut self, _: &[u8]) -> Result<(), crate::error::StateError> {
+            Ok(())
+        }
+        fn num_parameters(&self) -> usize {
+            0
+        }
+        fn frozen_pass(&self) -> Option<&dyn crate::plugin::field::FrozenPass> {
+            Some(self)
+        }
+    }
+
+    /// The ball proposes its own samples.
+    impl crate::plugin::field::HierarchicalSampling for Ball {
+        fn sampling(&self) -> Hierarchical {
+            self.hierarchical.expect("handed out only when set")
+        }
+        fn proposal(&self) -> Option<&dyn RadianceField> {
+            None
+        }
+        fn proposal_mut(&mut self) -> Option<&mut dyn RadianceField> {
+            None
+        }
+    }
+
+    impl crate::plugin::field::FrozenPass for Ball {
         fn density_state_dim(&self) -> usize {
             if self.with_state {
                 3
@@ -632,28 +685,6 @@ mod tests {
                 let p: Vec<Vec3> = (0..rows.len()).map(at).collect();
                 self.seg_input(&p, seg);
             }
-        }
-        fn backward(&mut self, _: &[Vec3], _: &[Vec3], _: FieldTape, _: &[f32], _: &[[f32; 3]]) {}
-        fn step(&mut self, _: f32) {}
-        fn hierarchical(&self) -> Option<Hierarchical> {
-            self.hierarchical
-        }
-        fn seg_input_dim(&self) -> usize {
-            2
-        }
-        fn seg_input(&self, p: &[Vec3], out: &mut [f32]) {
-            for (p, row) in p.iter().zip(out.chunks_exact_mut(2)) {
-                row.copy_from_slice(&[p[0], p[1] * p[2]]);
-            }
-        }
-        fn save_state(&self) -> Vec<u8> {
-            Vec::new()
-        }
-        fn load_state(&mut self, _: &[u8]) -> Result<(), String> {
-            Ok(())
-        }
-        fn num_parameters(&self) -> usize {
-            0
         }
     }
 

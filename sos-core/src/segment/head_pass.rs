@@ -212,12 +212,16 @@ mod tests {
         fn save_state(&self) -> Vec<u8> {
             Vec::new()
         }
-        fn load_state(&mut self, _: &[u8]) -> Result<(), String> {
+        fn load_state(&mut self, _: &[u8]) -> Result<(), crate::error::StateError> {
             Ok(())
         }
         fn num_parameters(&self) -> usize {
             0
         }
+        fn gradients_finite(&self) -> bool {
+            true
+        }
+        fn discard_gradients(&mut self) {}
     }
 
     /// Chunked passes equal one pass over the whole batch (forward values and gradients),

@@ -6,6 +6,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rand::{Rng, SeedableRng};
 
 use crate::error::RunError;
+use crate::plugin::field::plain;
 use crate::render::composite::{RayColor, RayGrad};
 use crate::render::rays::RayBatch;
 use crate::render::renderer::render;
@@ -113,7 +114,7 @@ pub fn train_photometric_observed(
     let mut faces = FaceMonitor::default();
     let mut warned_faces = false;
     while session.step < total {
-        if session.field.begin_step(session.step, total) {
+        if plain::begin_step(session.field.as_mut(), session.step, total) {
             session.refresh_occupancy(0.0);
         }
         session.maintain_occupancy();
@@ -197,13 +198,13 @@ pub fn train_photometric_observed(
                 if let (Some(c), Some((gs, gc, _))) = (coarse.as_mut(), coarse_g) {
                     let tape = c.tape.take();
                     let (p, d) = (&c.samples.positions, &c.samples.directions);
-                    match session.field.coarse_mut() {
+                    match session.field.hierarchical_mut().and_then(|h| h.proposal_mut()) {
                         Some(proposal) => proposal.backward(p, d, tape, &gs, &gc),
                         None => session.field.backward(p, d, tape, &gs, &gc),
                     }
                 }
                 t_fb = timer.elapsed().as_secs_f64();
-                session.field.regularize();
+                plain::regularize(session.field.as_mut());
                 finite = session.field.gradients_finite();
             }
         }

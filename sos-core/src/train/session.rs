@@ -10,6 +10,7 @@ use crate::config::RunConfig;
 use crate::derived::{derive_settings, DerivedSetting};
 use crate::error::RunError;
 use crate::image::RgbImage;
+use crate::plugin::field::plain;
 use crate::plugin::{BuildContext, RadianceField};
 use crate::render::contraction::Contraction;
 use crate::render::occupancy::OccupancyGrid;
@@ -159,7 +160,7 @@ impl Session {
             )));
         }
         let state = ckpt.section("field").ok_or_else(|| fail("has no field section".into()))?;
-        self.field.load_state(state).map_err(fail)?;
+        self.field.load_state(state).map_err(|e| fail(e.to_string()))?;
         self.step = ckpt.meta.step;
         self.bake_occupancy();
         Ok((ckpt, path))
@@ -194,7 +195,7 @@ impl Session {
     /// the field's current detail, so coarse stages of a growing grid march coarsely.
     pub fn render_options(&self, stratified: bool) -> RenderOptions {
         let t = &self.config.train;
-        let steps = ((t.samples_per_ray as f32 * self.field.detail_fraction()).round() as usize).max(8);
+        let steps = ((t.samples_per_ray as f32 * plain::detail_fraction(self.field.as_ref())).round() as usize).max(8);
         RenderOptions {
             march: MarchOptions { steps, stratified },
             early_stop: t.early_stop,
