@@ -303,6 +303,15 @@ impl RadianceField for NanColour {
     fn num_parameters(&self) -> usize {
         self.0.num_parameters()
     }
+    fn parameters(&self) -> Vec<f32> {
+        self.0.parameters()
+    }
+    fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
+        self.0.set_parameters(values)
+    }
+    fn gradients(&self) -> Vec<f32> {
+        self.0.gradients()
+    }
 }
 
 #[test]

@@ -60,6 +60,15 @@ impl RadianceField for Probe {
     fn num_parameters(&self) -> usize {
         self.inner.num_parameters()
     }
+    fn parameters(&self) -> Vec<f32> {
+        self.inner.parameters()
+    }
+    fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
+        self.inner.set_parameters(values)
+    }
+    fn gradients(&self) -> Vec<f32> {
+        self.inner.gradients()
+    }
     fn hierarchical(&self) -> Option<&dyn HierarchicalSampling> {
         self.inner.hierarchical()
     }

@@ -90,6 +90,15 @@ impl RadianceField for Poisoned {
     fn num_parameters(&self) -> usize {
         self.inner.num_parameters()
     }
+    fn parameters(&self) -> Vec<f32> {
+        self.inner.parameters()
+    }
+    fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
+        self.inner.set_parameters(values)
+    }
+    fn gradients(&self) -> Vec<f32> {
+        self.inner.gradients()
+    }
     // Every field is wrapped as growing: its step hook counts the poisoned steps.
     fn coarse_to_fine(&self) -> Option<&dyn CoarseToFine> {
         Some(self)
@@ -206,5 +215,14 @@ impl RadianceField for Dummy {
     }
     fn num_parameters(&self) -> usize {
         0
+    }
+    fn parameters(&self) -> Vec<f32> {
+        Vec::new()
+    }
+    fn set_parameters(&mut self, _: &[f32]) -> Result<(), sos_core::error::StateError> {
+        Ok(())
+    }
+    fn gradients(&self) -> Vec<f32> {
+        Vec::new()
     }
 }

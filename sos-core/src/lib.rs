@@ -20,5 +20,6 @@ pub use inventory;
 pub mod render;
 pub mod scene;
 pub mod segment;
+#[cfg(any(test, feature = "testing"))]
 pub mod testing;
 pub mod train;

@@ -370,6 +370,15 @@ impl RadianceField for Constant {
     fn num_parameters(&self) -> usize {
         0
     }
+    fn parameters(&self) -> Vec<f32> {
+        Vec::new()
+    }
+    fn set_parameters(&mut self, _: &[f32]) -> Result<(), sos_core::error::StateError> {
+        Ok(())
+    }
+    fn gradients(&self) -> Vec<f32> {
+        Vec::new()
+    }
 }
 
 /// The field proposes its own samples (no separate proposal network).

@@ -124,6 +124,15 @@ impl RadianceField for Timed {
     fn num_parameters(&self) -> usize {
         self.net.num_parameters()
     }
+    fn parameters(&self) -> Vec<f32> {
+        self.net.parameters()
+    }
+    fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
+        self.net.set_parameters(values)
+    }
+    fn gradients(&self) -> Vec<f32> {
+        self.net.gradients()
+    }
 }
 
 /// Coarse + fine timed networks with the reference's hierarchical sampling.
@@ -168,6 +177,17 @@ impl RadianceField for Pair {
     }
     fn num_parameters(&self) -> usize {
         self.fine.num_parameters() + self.coarse.num_parameters()
+    }
+    fn parameters(&self) -> Vec<f32> {
+        [self.fine.parameters(), self.coarse.parameters()].concat()
+    }
+    fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
+        let n = self.fine.num_parameters().min(values.len());
+        self.fine.set_parameters(&values[..n])?;
+        self.coarse.set_parameters(&values[n..])
+    }
+    fn gradients(&self) -> Vec<f32> {
+        [self.fine.gradients(), self.coarse.gradients()].concat()
     }
     fn hierarchical(&self) -> Option<&dyn HierarchicalSampling> {
         Some(self)

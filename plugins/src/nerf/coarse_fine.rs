@@ -7,7 +7,7 @@ use sos_core::camera::Vec3;
 use sos_core::plugin::field::{FrozenPass, Hierarchical, HierarchicalSampling};
 use sos_core::plugin::{FieldTape, RadianceField};
 
-use super::field::{read_params, write_params};
+use super::field::{mlp_gradients, mlp_parameters, read_params, set_mlp_parameters, write_params};
 use super::network::NerfMlp;
 
 /// One level of a [`CoarseFine`] field: a field in its own right whose networks a checkpoint
@@ -104,6 +104,23 @@ impl<L: Level> RadianceField for CoarseFine<L> {
         self.fine.num_parameters() + if self.sampling.is_some() { self.coarse.num_parameters() } else { 0 }
     }
 
+    fn parameters(&self) -> Vec<f32> {
+        mlp_parameters(&self.trained())
+    }
+
+    fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
+        let with_coarse = self.sampling.is_some();
+        let mut nets = self.fine.mlps_mut();
+        if with_coarse {
+            nets.extend(self.coarse.mlps_mut());
+        }
+        set_mlp_parameters(&mut nets, values)
+    }
+
+    fn gradients(&self) -> Vec<f32> {
+        mlp_gradients(&self.trained())
+    }
+
     fn hierarchical(&self) -> Option<&dyn HierarchicalSampling> {
         self.sampling.is_some().then_some(self as &dyn HierarchicalSampling)
     }
@@ -119,6 +136,18 @@ impl<L: Level> RadianceField for CoarseFine<L> {
     // The fine level renders; its fused pass is the field's.
     fn frozen_pass(&self) -> Option<&dyn FrozenPass> {
         self.fine.frozen_pass()
+    }
+}
+
+impl<L: Level> CoarseFine<L> {
+    /// The networks training updates: the fine level's, and the coarse level's when it
+    /// proposes samples.
+    fn trained(&self) -> Vec<&NerfMlp> {
+        let mut nets = self.fine.mlps();
+        if self.sampling.is_some() {
+            nets.extend(self.coarse.mlps());
+        }
+        nets
     }
 }
 

@@ -125,6 +125,19 @@ impl RadianceField for NerfNet {
     fn num_parameters(&self) -> usize {
         self.mlp.num_parameters()
     }
+
+    fn parameters(&self) -> Vec<f32> {
+        mlp_parameters(&[&self.mlp])
+    }
+
+    fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
+        set_mlp_parameters(&mut [&mut self.mlp], values)
+    }
+
+    fn gradients(&self) -> Vec<f32> {
+        mlp_gradients(&[&self.mlp])
+    }
+
     fn frozen_pass(&self) -> Option<&dyn sos_core::plugin::FrozenPass> {
         Some(self)
     }
@@ -163,6 +176,25 @@ impl sos_core::plugin::FrozenPass for NerfNet {
         let coords = if seg_input.is_some() { self.coords(positions) } else { Vec::new() };
         self.mlp.colour_from_trunk(state, rows, &coords, directions, rgb, seg_input);
     }
+}
+
+/// The parameters of networks, one after another (see [`RadianceField::parameters`]).
+pub fn mlp_parameters(nets: &[&NerfMlp]) -> Vec<f32> {
+    sos_core::nn::param::flat_values(nets.iter().flat_map(|m| m.params()))
+}
+
+/// The gradients of networks, laid out as [`mlp_parameters`].
+pub fn mlp_gradients(nets: &[&NerfMlp]) -> Vec<f32> {
+    sos_core::nn::param::flat_grads(nets.iter().flat_map(|m| m.params()))
+}
+
+/// Overwrites networks' parameters from values laid out as [`mlp_parameters`].
+pub fn set_mlp_parameters(nets: &mut [&mut NerfMlp], values: &[f32]) -> Result<(), sos_core::error::StateError> {
+    let mut params: Vec<_> = nets.iter_mut().flat_map(|m| m.params_mut()).collect();
+    sos_core::nn::param::assign_flat(&mut params, values).map_err(|want| sos_core::error::StateError::Mismatch {
+        kind: "nerf".into(),
+        reason: format!("{} parameter values given for {want} parameters", values.len()),
+    })
 }
 
 /// Writes networks as: `u64` header length, a JSON header of parameter sizes, then every

@@ -29,7 +29,9 @@ use sos_core::scene::SceneExtent;
 
 use limits::Limits;
 pub use coarse_fine::{CoarseFine, Level};
-pub use field::{normalised_coords, read_params, write_params, NerfField, NerfNet};
+pub use field::{
+    mlp_gradients, mlp_parameters, normalised_coords, read_params, set_mlp_parameters, write_params, NerfField, NerfNet,
+};
 pub use network::{DensityActivation, NerfMlp, NerfShape, NerfTape};
 
 /// Settings of the `nerf` field.

@@ -11,7 +11,9 @@ use sos_core::plugin::{FieldTape, RadianceField};
 use sos_core::render::contraction::Contraction;
 
 use super::NerfPpConfig;
-use crate::nerf::{read_params, write_params, CoarseFine, Level, NerfMlp, NerfTape};
+use crate::nerf::{
+    mlp_gradients, mlp_parameters, read_params, set_mlp_parameters, write_params, CoarseFine, Level, NerfMlp, NerfTape,
+};
 
 /// How world points map to the networks.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -303,6 +305,15 @@ impl RadianceField for NerfPpNet {
 
     fn num_parameters(&self) -> usize {
         self.mlps().iter().map(|m| m.num_parameters()).sum()
+    }
+    fn parameters(&self) -> Vec<f32> {
+        mlp_parameters(&self.mlps())
+    }
+    fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
+        set_mlp_parameters(&mut self.mlps_mut(), values)
+    }
+    fn gradients(&self) -> Vec<f32> {
+        mlp_gradients(&self.mlps())
     }
     fn frozen_pass(&self) -> Option<&dyn sos_core::plugin::FrozenPass> {
         Some(self)

@@ -363,6 +363,25 @@ impl RadianceField for VoxelGridField {
         self.grid.data.len()
     }
 
+    fn parameters(&self) -> Vec<f32> {
+        self.grid.data.clone()
+    }
+
+    fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
+        if values.len() != self.grid.data.len() {
+            return Err(sos_core::error::StateError::Mismatch {
+                kind: "voxel-grid".into(),
+                reason: format!("{} parameter values given for {} grid values", values.len(), self.grid.data.len()),
+            });
+        }
+        self.grid.data.copy_from_slice(values);
+        Ok(())
+    }
+
+    fn gradients(&self) -> Vec<f32> {
+        self.grads.clone()
+    }
+
     fn coarse_to_fine(&self) -> Option<&dyn CoarseToFine> {
         Some(self)
     }

@@ -52,6 +52,32 @@ impl Param {
     }
 }
 
+/// The values of `params`, one after another.
+pub fn flat_values<'a>(params: impl IntoIterator<Item = &'a Param>) -> Vec<f32> {
+    params.into_iter().flat_map(|p| p.value.iter().copied()).collect()
+}
+
+/// The gradients of `params`, laid out as [`flat_values`].
+pub fn flat_grads<'a>(params: impl IntoIterator<Item = &'a Param>) -> Vec<f32> {
+    params.into_iter().flat_map(|p| p.grad.iter().copied()).collect()
+}
+
+/// Overwrites `params` from values laid out as [`flat_values`]; on a length mismatch nothing is
+/// written and the expected length is returned.
+pub fn assign_flat(params: &mut [&mut Param], values: &[f32]) -> Result<(), usize> {
+    let want: usize = params.iter().map(|p| p.len()).sum();
+    if values.len() != want {
+        return Err(want);
+    }
+    let mut rest = values;
+    for p in params.iter_mut() {
+        let (head, tail) = rest.split_at(p.len());
+        p.value.copy_from_slice(head);
+        rest = tail;
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

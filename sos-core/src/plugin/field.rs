@@ -101,7 +101,22 @@ pub trait RadianceField: Send + Sync {
     fn load_state(&mut self, bytes: &[u8]) -> Result<(), StateError>;
 
     /// Number of trainable scalars (reported by `sos train`).
-    fn num_parameters(&self) -> usize;
+    fn num_parameters(&self) -> usize {
+        self.parameters().len()
+    }
+
+    /// Every trainable parameter, flattened in a fixed order. The conformance suite perturbs
+    /// them one at a time to check [`RadianceField::backward`] against finite differences;
+    /// training never calls it.
+    fn parameters(&self) -> Vec<f32>;
+
+    /// Overwrites every parameter from values laid out as [`RadianceField::parameters`]
+    /// returns them (derived caches must follow).
+    fn set_parameters(&mut self, values: &[f32]) -> Result<(), StateError>;
+
+    /// The gradients accumulated since the last [`RadianceField::step`], laid out as
+    /// [`RadianceField::parameters`].
+    fn gradients(&self) -> Vec<f32>;
 
     /// Hierarchical sampling, when the field wants it (default: single-pass marching).
     fn hierarchical(&self) -> Option<&dyn HierarchicalSampling> {

@@ -635,6 +635,15 @@ mod tests {
         fn num_parameters(&self) -> usize {
             0
         }
+        fn parameters(&self) -> Vec<f32> {
+            Vec::new()
+        }
+        fn set_parameters(&mut self, _: &[f32]) -> Result<(), crate::error::StateError> {
+            Ok(())
+        }
+        fn gradients(&self) -> Vec<f32> {
+            Vec::new()
+        }
         fn frozen_pass(&self) -> Option<&dyn crate::plugin::field::FrozenPass> {
             Some(self)
         }

@@ -218,6 +218,15 @@ mod tests {
         fn num_parameters(&self) -> usize {
             0
         }
+        fn parameters(&self) -> Vec<f32> {
+            Vec::new()
+        }
+        fn set_parameters(&mut self, _: &[f32]) -> Result<(), crate::error::StateError> {
+            Ok(())
+        }
+        fn gradients(&self) -> Vec<f32> {
+            Vec::new()
+        }
         fn gradients_finite(&self) -> bool {
             true
         }
