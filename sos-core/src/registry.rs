@@ -12,6 +12,9 @@ pub struct Registration<C: ?Sized + 'static> {
     pub kind: &'static str,
     /// One-line description shown by `sos list`.
     pub summary: &'static str,
+    /// The crate that declared the kind (`sos list` shows it, so a user can tell a plugin
+    /// crate's kinds from the built-in ones).
+    pub crate_name: &'static str,
     /// Builds the default configuration of this kind.
     pub default_config: fn() -> Box<C>,
 }
@@ -21,9 +24,10 @@ impl<C: ?Sized + 'static> Registration<C> {
     pub const fn new(
         kind: &'static str,
         summary: &'static str,
+        crate_name: &'static str,
         default_config: fn() -> Box<C>,
     ) -> Self {
-        Registration { kind, summary, default_config }
+        Registration { kind, summary, crate_name, default_config }
     }
 }
 
@@ -80,6 +84,8 @@ where
 ///
 /// fn main() {
 ///     assert_eq!(NextConfig::KIND, "next");
+///     // The declaring crate is recorded (here the doctest's own crate).
+///     assert!(!sos_core::registry::find::<dyn PairMinerConfig>("next").unwrap().crate_name.is_empty());
 ///     let registered = sos_core::registry::find::<dyn PairMinerConfig>("next").expect("registered");
 ///     let config: Box<dyn PairMinerConfig> = toml::from_str("kind = \"next\"").expect("typetag reads the kind");
 ///     assert_eq!(toml::to_string(&config).unwrap(), toml::to_string(&(registered.default_config)()).unwrap());
@@ -106,7 +112,7 @@ macro_rules! plugin_kind {
         }
 
         $crate::inventory::submit! {
-            $crate::registry::Registration::<dyn $($role)::+>::new($kind, $summary, $default)
+            $crate::registry::Registration::<dyn $($role)::+>::new($kind, $summary, env!("CARGO_PKG_NAME"), $default)
         }
     };
 }

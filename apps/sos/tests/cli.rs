@@ -59,6 +59,11 @@ fn list_names_the_default_plugins() {
     for kind in ["voxel-grid", "synthetic", "cell-stats", "cls-cosine", "appearance", "geometry"] {
         assert!(stdout.contains(kind), "`sos list` does not name {kind}:\n{stdout}");
     }
+    // Each kind names the crate that declared it.
+    for (kind, krate) in [("voxel-grid", "sos-plugins"), ("synthetic", "sos-datasets"), ("cell-stats", "sos-backbones"), ("appearance", "sos-losses")] {
+        let line = stdout.lines().find(|l| l.split_whitespace().next() == Some(kind)).expect("listed");
+        assert!(line.contains(&format!("({krate})")), "`sos list` does not name {kind}'s crate {krate}: {line}");
+    }
 }
 
 #[test]

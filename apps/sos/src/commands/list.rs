@@ -13,7 +13,7 @@ where
         println!("  (none registered)");
     }
     for r in all {
-        println!("  {:<16} {}", r.kind, r.summary);
+        println!("  {:<18} {:<22} {}", r.kind, format!("({})", r.crate_name), r.summary);
     }
 }
 
