@@ -49,7 +49,9 @@ fn teacher_cells_follow_the_patch_and_set_keys_are_kept() {
 #[test]
 fn without_stage_two_nothing_of_it_is_derived() {
     let s = session("[scene]\nkind = \"synthetic\"\nwidth = 100\nheight = 75\nviews = 4\n[segment]\nsteps = 0\n");
-    assert!(s.derived.is_empty(), "{:?}", s.derived);
+    // The memory budget bounds stage-1 renders too; nothing of stage 2 or its teacher is derived.
+    let keys: Vec<&str> = s.derived.iter().map(|d| d.key.as_str()).collect();
+    assert_eq!(keys, ["render.memory_gib"], "{:?}", s.derived);
 }
 
 #[test]
@@ -71,4 +73,16 @@ fn a_checkpoint_refuses_a_scene_with_another_extent() {
     let err = other.load_checkpoint(None).unwrap_err().to_string();
     assert!(err.contains("extent") && err.contains("unbounded"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn a_set_memory_budget_is_kept_and_a_bad_one_refused() {
+    let s = session("[scene]\nkind = \"synthetic\"\nwidth = 100\nheight = 75\nviews = 4\n[render]\nmemory_gib = 2.5\n");
+    assert!(s.derived.iter().all(|d| d.key != "render.memory_gib"), "{:?}", s.derived);
+    assert_eq!(s.config.render.memory_gib, Some(2.5));
+    for bad in ["0", "-1", "nan", "inf"] {
+        let text = format!("[scene]\nkind = \"synthetic\"\n[render]\nmemory_gib = {bad}\n");
+        let err = sos_core::config::RunConfig::parse(&text, std::path::Path::new("bad.toml")).expect_err(bad);
+        assert!(err.to_string().contains("render.memory_gib"), "{bad}: {err}");
+    }
 }

@@ -326,11 +326,16 @@ pub struct RenderConfig {
     pub test_views: bool,
     /// Render the scene's novel camera path when training ends.
     pub camera_path: bool,
+    /// GiB that frozen renders and the segmentation head may keep between passes (see
+    /// [`MemoryBudget`](crate::render::memory_budget::MemoryBudget)); a smaller budget costs time,
+    /// not results. Unset: derived from the machine's memory.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub memory_gib: Option<f64>,
 }
 
 impl Default for RenderConfig {
     fn default() -> Self {
-        RenderConfig { chunk: 16384, test_views: true, camera_path: false }
+        RenderConfig { chunk: 16384, test_views: true, camera_path: false, memory_gib: None }
     }
 }
 
@@ -440,6 +445,9 @@ impl RunConfig {
             if !(l.weight >= 0.0 && l.weight.is_finite()) {
                 return Err(invalid(&format!("loss[{i}].weight"), "must be zero or positive"));
             }
+        }
+        if self.render.memory_gib.is_some_and(|g| !(g.is_finite() && g > 0.0 && g <= 1e6)) {
+            return Err(invalid("render.memory_gib", "must be a positive number of GiB"));
         }
         if self.render.chunk == 0 {
             return Err(invalid("render.chunk", "must be at least 1"));

@@ -56,6 +56,11 @@ pub struct PatchFacts {
 /// same values.
 pub fn derive_settings(config: &mut RunConfig, config_dir: &Path, scene: &Scene) -> Vec<DerivedSetting> {
     let mut derived = config.scene.derived(config_dir, scene);
+    if config.render.memory_gib.is_none() {
+        let (gib, why) = crate::render::memory_budget::machine_default_gib();
+        derived.push(DerivedSetting::new("render.memory_gib", gib, why));
+        config.render.memory_gib = Some(gib);
+    }
     let seg = &mut config.segment;
     if seg.steps == 0 {
         return derived;

@@ -13,6 +13,7 @@ use sos_core::metrics::{
     ssim, ImageQualityReport, SegmentationReport,
 };
 use sos_core::plugin::field::{Hierarchical, HierarchicalSampling};
+use sos_core::render::memory_budget::MemoryBudget;
 use sos_core::plugin::{FieldTape, RadianceField};
 use sos_core::render::composite::{
     composite, composite_backward, weights, RayColor, RayGrad, RaySamples, EMPTY_RAY_ACC,
@@ -440,6 +441,7 @@ fn rendering_empty_opaque_and_extreme_fields_stays_finite() {
                     march,
                     early_stop,
                     min_weight,
+                    memory: MemoryBudget::unlimited(),
                 };
                 let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
                 let mut r = render(&field, ctx, &rays, options, true, &mut rng);
@@ -520,6 +522,7 @@ fn rendering_empty_opaque_and_extreme_fields_stays_finite() {
             },
             early_stop: 1e-4,
             min_weight: 0.0,
+            memory: MemoryBudget::unlimited(),
         };
         let (colors, logits) = render_inference(&field, ctx, &rays, options, 50, Some(&channels));
         assert_eq!((colors.len(), logits.len()), (rays.len(), 2 * rays.len()));

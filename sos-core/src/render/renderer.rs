@@ -17,6 +17,7 @@ use crate::camera::Vec3;
 use crate::plugin::field::{plain, Hierarchical};
 use crate::plugin::{FieldTape, RadianceField};
 use crate::render::composite::{self, RayColor, RayGrad, RaySamples};
+use crate::render::memory_budget::MemoryBudget;
 use crate::render::contraction::Contraction;
 use crate::render::density_pass::{density_pass, KeptState};
 use crate::render::occupancy::OccupancyGrid;
@@ -29,7 +30,6 @@ const MARCH_CHUNK: usize = 256;
 
 /// Most bytes of field state ([`RadianceField::density_state_dim`]) a frozen render keeps
 /// from its density pass for the colour pass (NeRF: 1 KiB per kept sample).
-const STATE_BUDGET: usize = 4 << 30;
 
 /// How to render.
 #[derive(Debug, Clone, Copy)]
@@ -41,6 +41,9 @@ pub struct RenderOptions {
     /// Drop samples whose compositing weight is at most this (only sound when the density is
     /// frozen, e.g. in stage 2); 0 keeps every sample before termination.
     pub min_weight: f32,
+    /// What a frozen render may keep between its passes (the density pass's state, the
+    /// segmentation input); over it, work is recomputed and the result is the same.
+    pub memory: MemoryBudget,
 }
 
 /// The scene-level context a renderer needs.
@@ -261,7 +264,7 @@ fn render_impl(
 
     // Density-only pass to find where each ray terminates and which weights matter; a
     // frozen render also takes the field's state at the kept samples from it.
-    let state_budget = if record { 0 } else { STATE_BUDGET };
+    let state_budget = if record { 0 } else { options.memory.density_state() };
     let state_buffer = std::mem::take(&mut buffers.state);
     let mut pass = density_pass(field, &candidates, options.early_stop, options.min_weight, state_budget, state_buffer);
     let t_density = timer.elapsed().as_secs_f64();
@@ -473,12 +476,19 @@ impl Rendered {
     /// `Σ_k w_k e_k` per ray over the samples with `w_k > extra.min_weight`, after
     /// [`Rendered::composite`] has computed the weights.
     fn composite_extra(&self, extra: &ExtraChannels) -> Vec<f32> {
-        let d = extra.dim;
         let selected = |k: usize| self.weights[k] > extra.min_weight;
         let positions: Vec<Vec3> =
             (0..self.samples.len()).filter(|&k| selected(k)).map(|k| self.samples.positions[k]).collect();
         let values = (extra.eval)(&positions);
-        assert_eq!(values.len(), positions.len() * d, "extra channels: eval returned the wrong size");
+        assert_eq!(values.len(), positions.len() * extra.dim, "extra channels: eval returned the wrong size");
+        self.composite_values(&values, extra.dim, selected)
+    }
+
+    /// `Σ_k w_k v_k` per ray, `[n_rays, d]`: per-sample values (the segmentation logits)
+    /// composited with the weights of [`Rendered::composite`], over the samples `selected`
+    /// keeps; `values` holds one row per selected sample, in sample order. Stage 2 and mask
+    /// inference composite their logits here, so a head sees the same sums in both.
+    pub fn composite_values(&self, values: &[f32], d: usize, selected: impl Fn(usize) -> bool) -> Vec<f32> {
         let mut out = vec![0.0; self.samples.n_rays() * d];
         let mut next = values.chunks_exact(d);
         for (r, out) in out.chunks_exact_mut(d).enumerate() {
@@ -488,6 +498,19 @@ impl Rendered {
             }
         }
         out
+    }
+
+    /// Backward of [`Rendered::composite_values`] over every sample (the weights held
+    /// constant): `∂L/∂v_k = w_k ∂L/∂out(ray of k)`, `[n_samples, d]`.
+    pub fn composite_values_backward(&self, grad_rays: &[f32], d: usize) -> Vec<f32> {
+        let mut grad = vec![0.0; self.samples.len() * d];
+        for r in 0..self.samples.n_rays() {
+            let g = &grad_rays[r * d..(r + 1) * d];
+            for k in self.samples.range(r) {
+                grad[k * d..(k + 1) * d].iter_mut().zip(g).for_each(|(o, &g)| *o = self.weights[k] * g);
+            }
+        }
+        grad
     }
 
     /// Backward of [`Rendered::composite`]: given per-ray output gradients, returns
@@ -720,7 +743,7 @@ mod tests {
         let field = Ball::new(None, false);
         let (extent, contraction, rays) = setup();
         let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
-        let options = RenderOptions { march: MarchOptions { steps: 128, stratified: false }, early_stop: 0.0, min_weight: 0.0 };
+        let options = RenderOptions { march: MarchOptions { steps: 128, stratified: false }, early_stop: 0.0, min_weight: 0.0, memory: MemoryBudget::unlimited() };
         // Channel 0 is 1 everywhere (so it composites to the selected weight), channel 1 is z.
         let eval = |p: &[Vec3]| p.iter().flat_map(|p| [1.0, p[2]]).collect::<Vec<f32>>();
         let all = ExtraChannels { dim: 2, min_weight: 0.0, eval: &eval };
@@ -754,8 +777,8 @@ mod tests {
         let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
         let march = MarchOptions { steps: 64, stratified: false };
         for options in [
-            RenderOptions { march, early_stop: 1e-4, min_weight: 1e-3 },
-            RenderOptions { march, early_stop: 0.0, min_weight: 0.0 },
+            RenderOptions { march, early_stop: 1e-4, min_weight: 1e-3, memory: MemoryBudget::unlimited() },
+            RenderOptions { march, early_stop: 0.0, min_weight: 0.0, memory: MemoryBudget::unlimited() },
         ] {
             let rng = || rand_chacha::ChaCha8Rng::seed_from_u64(0);
             let plain = render(&field, ctx, &rays, options, false, &mut rng());
@@ -790,8 +813,8 @@ mod tests {
     fn early_termination_skips_density_work_and_keeps_colours() {
         let field = Ball::new(None, false);
         let march = MarchOptions { steps: 256, stratified: false };
-        let (full, _) = colors(&field, RenderOptions { march, early_stop: 0.0, min_weight: 0.0 });
-        let (pruned, evaluated) = colors(&field, RenderOptions { march, early_stop: 1e-4, min_weight: 1e-4 });
+        let (full, _) = colors(&field, RenderOptions { march, early_stop: 0.0, min_weight: 0.0, memory: MemoryBudget::unlimited() });
+        let (pruned, evaluated) = colors(&field, RenderOptions { march, early_stop: 1e-4, min_weight: 1e-4, memory: MemoryBudget::unlimited() });
         let hits = full.iter().filter(|c| c.acc > 0.5).count();
         assert!(hits > 20, "the ball covers part of the image ({hits} rays)");
         for (a, b) in full.iter().zip(&pruned) {
@@ -801,17 +824,17 @@ mod tests {
             assert!((a.acc - b.acc).abs() < 2e-3);
         }
         // Rays through the ball stop inside it, skipping at least the back half of the box.
-        let (_, all) = colors(&field, RenderOptions { march, early_stop: 0.0, min_weight: 1e-9 });
+        let (_, all) = colors(&field, RenderOptions { march, early_stop: 0.0, min_weight: 1e-9, memory: MemoryBudget::unlimited() });
         assert!(evaluated + 100 * hits < all, "evaluated {evaluated} of {all} densities ({hits} rays hit)");
     }
 
     #[test]
     fn hierarchical_sampling_concentrates_samples_and_matches_a_dense_render() {
         let dense = Ball::new(None, false);
-        let (want, _) = colors(&dense, RenderOptions { march: MarchOptions { steps: 2048, stratified: false }, early_stop: 0.0, min_weight: 0.0 });
+        let (want, _) = colors(&dense, RenderOptions { march: MarchOptions { steps: 2048, stratified: false }, early_stop: 0.0, min_weight: 0.0, memory: MemoryBudget::unlimited() });
         let h = Hierarchical { coarse_samples: 32, fine_samples: 64 };
         let field = Ball::new(Some(h), false);
-        let (got, _) = colors(&field, RenderOptions { march: MarchOptions { steps: 8, stratified: false }, early_stop: 0.0, min_weight: 0.0 });
+        let (got, _) = colors(&field, RenderOptions { march: MarchOptions { steps: 8, stratified: false }, early_stop: 0.0, min_weight: 0.0, memory: MemoryBudget::unlimited() });
         let mut worst = 0.0f32;
         for (a, b) in want.iter().zip(&got) {
             worst = worst.max((a.acc - b.acc).abs());
@@ -824,7 +847,7 @@ mod tests {
         let (extent, contraction, rays) = setup();
         let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-        let options = RenderOptions { march: MarchOptions { steps: 8, stratified: true }, early_stop: 0.0, min_weight: 0.0 };
+        let options = RenderOptions { march: MarchOptions { steps: 8, stratified: true }, early_stop: 0.0, min_weight: 0.0, memory: MemoryBudget::unlimited() };
         let r = render(&field, ctx, &rays, options, true, &mut rng);
         let coarse = r.coarse.expect("proposal pass with record");
         assert_eq!(coarse.colors.len(), rays.len());

@@ -20,25 +20,16 @@ use crate::segment::head::SegHead;
 /// Samples per chunk: large enough for full-speed GEMMs, small enough to stay in cache.
 const CHUNK: usize = 8192;
 
-/// Bytes of tapes a step may keep (a million samples of a 43-wide input and a 128-wide
-/// hidden layer take 0.7 GB; NeRF's 319-wide input, 1.8 GB). When the render kept the input,
-/// the tapes hold only the hidden layer: a foggy NeRF's 8-patch step (2.5–3 M samples) peaks
-/// at 6 GB.
-pub const TAPE_BUDGET: usize = 6 << 30;
-
-/// The per-chunk tapes of the last forward pass, reused from step to step.
+/// The per-chunk tapes of the last forward pass, reused from step to step. Their budget is the
+/// head's share of [`MemoryBudget`](crate::render::memory_budget::MemoryBudget): a million
+/// samples of a 43-wide input and a 128-wide hidden layer take 0.7 GB, NeRF's 319-wide input
+/// 1.8 GB; when the render kept the input, the tapes hold only the hidden layer.
 #[derive(Debug)]
 pub struct HeadTapes {
     tapes: Vec<MlpTape>,
     /// Chunks of the last forward pass that have a tape (0 when it was over budget).
     used: usize,
     budget: usize,
-}
-
-impl Default for HeadTapes {
-    fn default() -> Self {
-        HeadTapes::with_budget(TAPE_BUDGET)
-    }
 }
 
 impl HeadTapes {
@@ -264,7 +255,7 @@ mod tests {
         let moved: Vec<Vec3> = positions.iter().map(|p| [p[0] + 1.0, p[1], p[2]]).collect();
         // Kept tapes (reused over two passes, the first on a larger batch) and recomputed ones,
         // each with the input computed here and with the input a render kept.
-        for (budget, kept_input) in [(TAPE_BUDGET, false), (0, false), (TAPE_BUDGET, true), (0, true)] {
+        for (budget, kept_input) in [(usize::MAX, false), (0, false), (usize::MAX, true), (0, true)] {
             let mut chunked = head.clone();
             let mut tapes = HeadTapes::with_budget(budget);
             let more: Vec<Vec3> = positions.iter().chain(&positions[..CHUNK]).copied().collect();

@@ -25,11 +25,6 @@ use crate::train::session::{kind_of, Session};
 /// Consecutive non-finite losses after which stage 2 stops.
 const MAX_BAD_STEPS: usize = 20;
 
-/// Bytes of segmentation input a stage-2 render may keep for the head (NeRF's 319 floats for
-/// 3.4 M samples); larger batches compute it again in the head pass, twice (forward and
-/// backward), which for NeRF is two more trunk passes.
-const SEG_INPUT_BUDGET: usize = 4 << 30;
-
 /// Offset of the patch sampler's seed from the run's (its own stream, so the patch sequence
 /// does not depend on what else a step draws).
 const PATCH_SEED: u64 = 0x9A7C;
@@ -64,7 +59,6 @@ pub struct Segmenter {
 
 /// The gigabytes a stage-2 step fills (the head's tapes, the frozen render's state and
 /// segmentation input), kept so that they are page-faulted in once rather than every step.
-#[derive(Default)]
 struct ReusedBuffers {
     tapes: head_pass::HeadTapes,
     render: FrozenBuffers,
@@ -130,7 +124,10 @@ impl Segmenter {
             losses,
             sampler,
             step: 0,
-            reused: ReusedBuffers::default(),
+            reused: ReusedBuffers {
+                tapes: head_pass::HeadTapes::with_budget(session.render_options(false).memory.head_tapes()),
+                render: FrozenBuffers::default(),
+            },
         })
     }
 }
@@ -180,21 +177,21 @@ pub fn train_segmentation_observed(
         }
         let timer = Instant::now();
         let rays = patch_rays(&session.scene, &patches);
-        let mut r = render_rays(session, &rays, joint, SEG_INPUT_BUDGET, &mut seg.reused.render, &mut rng);
+        let mut r = render_rays(session, &rays, joint, true, &mut seg.reused.render, &mut rng);
 
         // Head on the surviving samples, then logits composited with the field's weights.
         let n_samples = r.samples.len();
         let t_field = timer.elapsed().as_secs_f64();
         let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
         let sample_logits = head_pass::forward(session.field.as_ref(), &seg.head, head_samples, &mut seg.reused.tapes);
+        // Ray-major logits, as inference composites them, laid out per patch channel-first
+        // for the losses.
+        let ray_logits = r.composite_values(&sample_logits, d_seg, |_| true);
         let mut logits = vec![0.0f32; n_patches * d_seg * rays_per_patch];
-        for ray in 0..rays.len() {
+        for (ray, l) in ray_logits.chunks_exact(d_seg).enumerate() {
             let (patch, pix) = (ray / rays_per_patch, ray % rays_per_patch);
-            for k in r.samples.range(ray) {
-                let w = r.weights[k];
-                for c in 0..d_seg {
-                    logits[(patch * d_seg + c) * rays_per_patch + pix] += w * sample_logits[k * d_seg + c];
-                }
+            for (c, &v) in l.iter().enumerate() {
+                logits[(patch * d_seg + c) * rays_per_patch + pix] = v;
             }
         }
 
@@ -255,19 +252,14 @@ pub fn train_segmentation_observed(
         bad_steps = 0;
 
         // Back through the compositing: ∂L/∂logits_k = w_k ∂L/∂s(ray).
-        let mut grad_sample = vec![0.0f32; n_samples * d_seg];
         let mut ray_grad_extra = vec![0.0f32; rays.len() * d_seg];
-        for ray in 0..rays.len() {
+        for (ray, g) in ray_grad_extra.chunks_exact_mut(d_seg).enumerate() {
             let (patch, pix) = (ray / rays_per_patch, ray % rays_per_patch);
-            for c in 0..d_seg {
-                ray_grad_extra[ray * d_seg + c] = grad_logits[(patch * d_seg + c) * rays_per_patch + pix];
-            }
-            for k in r.samples.range(ray) {
-                for c in 0..d_seg {
-                    grad_sample[k * d_seg + c] = r.weights[k] * ray_grad_extra[ray * d_seg + c];
-                }
+            for (c, g) in g.iter_mut().enumerate() {
+                *g = grad_logits[(patch * d_seg + c) * rays_per_patch + pix];
             }
         }
+        let grad_sample = r.composite_values_backward(&ray_grad_extra, d_seg);
         head_pass::backward(session.field.as_ref(), &mut seg.head, head_samples, &grad_sample, &seg.reused.tapes);
         let lr_factor = cfg.final_lr_factor.powf(seg.step as f32 / cfg.steps.max(1) as f32);
         seg.head.step(lr_factor);
@@ -327,13 +319,14 @@ pub fn train_segmentation_observed(
 
 /// Renders patch rays as a stage-2 step does. With the density frozen (`joint = false`),
 /// samples whose compositing weight is below `segment.weight_threshold` are skipped (they
-/// cannot matter), and the render keeps the field's segmentation input at the rest when it
-/// fits `seg_budget` bytes, so the head needs no second pass of the field.
+/// cannot matter), and with `keep_seg_input` the render keeps the field's segmentation input at
+/// the rest when it fits its share of the memory budget, so the head needs no second pass of
+/// the field.
 fn render_rays(
     session: &Session,
     rays: &RayBatch,
     joint: bool,
-    seg_budget: usize,
+    keep_seg_input: bool,
     buffers: &mut FrozenBuffers,
     rng: &mut impl Rng,
 ) -> Rendered {
@@ -343,6 +336,7 @@ fn render_rays(
         render(field, ctx, rays, options, true, rng)
     } else {
         options.min_weight = session.config.segment.weight_threshold;
+        let seg_budget = if keep_seg_input { options.memory.seg_input() } else { 0 };
         render_with_seg_input(field, ctx, rays, options, seg_budget, buffers, rng)
     };
     r.composite();
@@ -369,7 +363,7 @@ pub fn render_patches(session: &Session, patches: &[Patch]) -> Vec<RgbImage> {
     let rays = patch_rays(&session.scene, patches);
     // Evaluation marching is not stratified: the generator does not change the result.
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed);
-    let r = render_rays(session, &rays, false, 0, &mut FrozenBuffers::default(), &mut rng);
+    let r = render_rays(session, &rays, false, false, &mut FrozenBuffers::default(), &mut rng);
     patch_images(&r.colors, session.config.segment.patch_size as usize)
 }
 

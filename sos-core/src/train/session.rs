@@ -11,6 +11,7 @@ use crate::derived::{derive_settings, DerivedSetting};
 use crate::error::RunError;
 use crate::image::RgbImage;
 use crate::plugin::field::plain;
+use crate::render::memory_budget::MemoryBudget;
 use crate::plugin::{BuildContext, RadianceField};
 use crate::render::contraction::Contraction;
 use crate::render::occupancy::OccupancyGrid;
@@ -200,6 +201,9 @@ impl Session {
             march: MarchOptions { steps, stratified },
             early_stop: t.early_stop,
             min_weight: if stratified { t.weight_threshold } else { 0.0 },
+            memory: MemoryBudget::from_gib(
+                self.config.render.memory_gib.unwrap_or_else(|| crate::render::memory_budget::machine_default_gib().0),
+            ),
         }
     }
 
