@@ -350,11 +350,7 @@ impl FeatureExtractor for CellStats {
 /// Opponent colour space: red–green, yellow–blue, luma (an orthonormal rotation of RGB).
 #[inline]
 fn opponent([r, g, b]: [f32; 3]) -> [f32; 3] {
-    [
-        (r - g) * std::f32::consts::FRAC_1_SQRT_2,
-        (r + g - 2.0 * b) / 6.0f32.sqrt(),
-        (r + g + b) / 3.0f32.sqrt(),
-    ]
+    [(r - g) * std::f32::consts::FRAC_1_SQRT_2, (r + g - 2.0 * b) / 6.0f32.sqrt(), (r + g + b) / 3.0f32.sqrt()]
 }
 
 /// Per-pixel gradient magnitude and unsigned orientation in `[0, π)` of the mean of the
@@ -365,25 +361,23 @@ fn gradients(image: &RgbImage) -> (Vec<f32>, Vec<f32>) {
     let luma: Vec<f32> = image.data.chunks_exact(3).map(|p| (p[0] + p[1] + p[2]) / 3.0).collect();
     let mut magnitude = vec![0.0; w * h];
     let mut orientation = vec![0.0; w * h];
-    magnitude.par_chunks_mut(w).zip(orientation.par_chunks_mut(w)).enumerate().for_each(
-        |(r, (mag, ori))| {
-            let (up, down) = (r.saturating_sub(1), (r + 1).min(h - 1));
-            for c in 0..w {
-                let (left, right) = (c.saturating_sub(1), (c + 1).min(w - 1));
-                let gx = (luma[r * w + right] - luma[r * w + left]) * 0.5;
-                let gy = (luma[down * w + c] - luma[up * w + c]) * 0.5;
-                mag[c] = (gx * gx + gy * gy).sqrt();
-                let mut theta = gy.atan2(gx);
-                if theta < 0.0 {
-                    theta += std::f32::consts::PI;
-                }
-                if theta >= std::f32::consts::PI {
-                    theta -= std::f32::consts::PI;
-                }
-                ori[c] = theta;
+    magnitude.par_chunks_mut(w).zip(orientation.par_chunks_mut(w)).enumerate().for_each(|(r, (mag, ori))| {
+        let (up, down) = (r.saturating_sub(1), (r + 1).min(h - 1));
+        for c in 0..w {
+            let (left, right) = (c.saturating_sub(1), (c + 1).min(w - 1));
+            let gx = (luma[r * w + right] - luma[r * w + left]) * 0.5;
+            let gy = (luma[down * w + c] - luma[up * w + c]) * 0.5;
+            mag[c] = (gx * gx + gy * gy).sqrt();
+            let mut theta = gy.atan2(gx);
+            if theta < 0.0 {
+                theta += std::f32::consts::PI;
             }
-        },
-    );
+            if theta >= std::f32::consts::PI {
+                theta -= std::f32::consts::PI;
+            }
+            ori[c] = theta;
+        }
+    });
     (magnitude, orientation)
 }
 
@@ -400,10 +394,8 @@ fn border_distance(cells: &[Vec<f32>], gh: usize, gw: usize, cfg: &CellStatsConf
     // Undo the user weights so saliency does not depend on them.
     let unweight = |w: f32| if w > 0.0 { 1.0 / w } else { 0.0 };
     let (cw, sw) = (unweight(cfg.colour_weight), unweight(cfg.spread_weight));
-    let desc: Vec<[f32; 6]> = cells
-        .iter()
-        .map(|f| [f[0] * cw, f[1] * cw, f[2] * cw, f[3] * sw, f[4] * sw, f[5] * sw])
-        .collect();
+    let desc: Vec<[f32; 6]> =
+        cells.iter().map(|f| [f[0] * cw, f[1] * cw, f[2] * cw, f[3] * sw, f[4] * sw, f[5] * sw]).collect();
     let border: Vec<usize> = (0..gh * gw)
         .filter(|&i| {
             let (r, c) = (i / gw, i % gw);
@@ -415,9 +407,7 @@ fn border_distance(cells: &[Vec<f32>], gh: usize, gw: usize, cfg: &CellStatsConf
         .map(|d| {
             let mut dists: Vec<f32> = border
                 .iter()
-                .map(|&b| {
-                    d.iter().zip(&desc[b]).map(|(x, y)| (x - y) * (x - y)).sum::<f32>().sqrt()
-                })
+                .map(|&b| d.iter().zip(&desc[b]).map(|(x, y)| (x - y) * (x - y)).sum::<f32>().sqrt())
                 .collect();
             dists.select_nth_unstable_by(m - 1, f32::total_cmp);
             dists[..m].iter().sum::<f32>() / m as f32
@@ -658,7 +648,8 @@ mod tests {
             })
         };
         let channel = |map: &FeatureMap, r: usize, c: usize| *cell_vec(map, r, c).last().unwrap();
-        let fixed = CellStats::new(CellStatsConfig { saliency_scale: SaliencyScale::Fixed, ..Default::default() }).unwrap();
+        let fixed =
+            CellStats::new(CellStatsConfig { saliency_scale: SaliencyScale::Fixed, ..Default::default() }).unwrap();
         let with = fixed.extract_one(&scene(true, 5));
         let (centre, corner) = (channel(&with, 4, 5), channel(&with, 0, 0));
         eprintln!("saliency channel: centre {centre:.3}, corner {corner:.3}");
@@ -691,12 +682,9 @@ mod tests {
         let back: Box<dyn FeatureExtractorConfig> = toml::from_str(&text).unwrap();
         assert_eq!(back.build(&BuildContext::default()).unwrap().identity(), built.identity());
         // Defaults fill in missing keys; unknown keys are rejected with their name.
-        let default: Box<dyn FeatureExtractorConfig> =
-            toml::from_str("kind = \"cell-stats\"").unwrap();
+        let default: Box<dyn FeatureExtractorConfig> = toml::from_str("kind = \"cell-stats\"").unwrap();
         assert_eq!(default.build(&BuildContext::default()).unwrap().identity(), extractor().identity());
-        let err =
-            toml::from_str::<Box<dyn FeatureExtractorConfig>>("kind = \"cell-stats\"\ncells = 4")
-                .unwrap_err();
+        let err = toml::from_str::<Box<dyn FeatureExtractorConfig>>("kind = \"cell-stats\"\ncells = 4").unwrap_err();
         assert!(err.to_string().contains("cells"), "{err}");
         // Out-of-range values fail at build time, naming the key.
         for (text, key) in [

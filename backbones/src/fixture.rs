@@ -120,8 +120,7 @@ impl F32Array {
         if bytes.len() % 4 != 0 {
             return Err("`f32le` length is not a multiple of 4 bytes".into());
         }
-        let data: Vec<f32> =
-            bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+        let data: Vec<f32> = bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
         let array = F32Array { shape, data };
         if array.numel() != array.data.len() {
             return Err(format!("shape {:?} needs {} values, found {}", array.shape, array.numel(), array.data.len()));
@@ -147,7 +146,9 @@ impl CompactFixture {
         let table = value["arrays"].as_object().ok_or("no `arrays` table")?;
         let arrays = table
             .iter()
-            .map(|(name, v)| F32Array::from_json(v).map(|a| (name.clone(), a)).map_err(|e| format!("array `{name}`: {e}")))
+            .map(|(name, v)| {
+                F32Array::from_json(v).map(|a| (name.clone(), a)).map_err(|e| format!("array `{name}`: {e}"))
+            })
             .collect::<Result<_, _>>()?;
         Ok(CompactFixture { doc, arrays })
     }

@@ -9,12 +9,12 @@
 //! The model takes one float input `[batch, 3, input_size, input_size]` (named `input`),
 //! preprocessed like `dino-vit`'s (nearest resize, per-channel `mean`/`std`, optionally
 //! twice). Outputs, by name:
-//! - `tokens`: `[batch, prefix + h·w, C]` tokens (the first `prefix_tokens` are [CLS] and
+//! - `tokens`: `[batch, prefix + h·w, C]` tokens (the first `prefix_tokens` are \[CLS\] and
 //!   the like, the rest a square-ish patch grid row-major) or a `[batch, C, h, w]` map (CNNs);
 //! - `cls` (optional): `[batch, C]` global descriptor; default token 0 when there are prefix
 //!   tokens, else the mean of the map;
 //! - `saliency` (optional): `[batch, prefix + h·w]`, `[batch, h·w]` or `[batch, h, w]`, e.g.
-//!   DINO's last-layer [CLS] attention.
+//!   DINO's last-layer \[CLS\] attention.
 
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
@@ -67,7 +67,7 @@ pub struct OnnxConfig {
     pub double_normalize: bool,
     /// Output with the features (tokens `[B, T, C]` or a map `[B, C, h, w]`).
     pub tokens: String,
-    /// Tokens before the patch grid in a `[B, T, C]` output (1 for [CLS]; 5 for DINOv2 with
+    /// Tokens before the patch grid in a `[B, T, C]` output (1 for \[CLS\]; 5 for DINOv2 with
     /// registers).
     pub prefix_tokens: usize,
     /// Output with a `[B, C]` global descriptor (optional).
@@ -119,7 +119,10 @@ fn environment(runtime: Option<&Path>) -> Result<Environment, BuildError> {
     // be loaded once per process; later configurations share it).
     if let Some(p) = runtime {
         if !p.is_file() {
-            return Err(resource(format!("ONNX Runtime library `{}` (`runtime`) not found. {RUNTIME_HINT}", p.display())));
+            return Err(resource(format!(
+                "ONNX Runtime library `{}` (`runtime`) not found. {RUNTIME_HINT}",
+                p.display()
+            )));
         }
     }
     let mut env = ENVIRONMENT.lock().unwrap_or_else(|e| e.into_inner());
@@ -134,7 +137,10 @@ fn environment(runtime: Option<&Path>) -> Result<Environment, BuildError> {
         },
     };
     if !path.is_file() {
-        return Err(resource(format!("ONNX Runtime library `{}` (ORT_DYLIB_PATH) not found. {RUNTIME_HINT}", path.display())));
+        return Err(resource(format!(
+            "ONNX Runtime library `{}` (ORT_DYLIB_PATH) not found. {RUNTIME_HINT}",
+            path.display()
+        )));
     }
     let built = ort::init_from(&path)
         .map_err(|e| resource(format!("cannot load ONNX Runtime from `{}`: {e}. {RUNTIME_HINT}", path.display())))?
@@ -189,7 +195,10 @@ impl OnnxModel {
         let session = builder.commit_from_file(model).map_err(|e| fail("cannot load it", e.to_string()))?;
         let Some(inlet) = session.inputs().iter().find(|i| i.name() == input) else {
             let names: Vec<&str> = session.inputs().iter().map(|i| i.name()).collect();
-            return Err(invalid("input", format!("`{}` has no input `{input}`; its inputs are {names:?}", model.display())));
+            return Err(invalid(
+                "input",
+                format!("`{}` has no input `{input}`; its inputs are {names:?}", model.display()),
+            ));
         };
         let input_dims = inlet.dtype().tensor_shape().map(|s| s.to_vec()).unwrap_or_default();
         let outputs = session.outputs().iter().map(|o| o.name().to_string()).collect();
@@ -268,7 +277,11 @@ impl OnnxExtractor {
         config.validate()?;
         let threads = if config.threads > 0 { config.threads } else { rayon::current_num_threads() };
         let model = OnnxModel::load(&config.model, config.runtime.as_deref(), &config.input, threads)?;
-        let wanted = [Some(("tokens", &config.tokens)), config.cls.as_ref().map(|c| ("cls", c)), config.saliency.as_ref().map(|s| ("saliency", s))];
+        let wanted = [
+            Some(("tokens", &config.tokens)),
+            config.cls.as_ref().map(|c| ("cls", c)),
+            config.saliency.as_ref().map(|s| ("saliency", s)),
+        ];
         for (key, name) in wanted.into_iter().flatten() {
             if !model.outputs.contains(name) {
                 return Err(invalid(
@@ -279,7 +292,10 @@ impl OnnxExtractor {
         }
         let dims = &model.input_dims;
         if dims.len() != 4 || (dims[1] > 0 && dims[1] != 3) {
-            return Err(invalid("input", format!("input `{}` has dimensions {dims:?}, expected [batch, 3, h, w]", config.input)));
+            return Err(invalid(
+                "input",
+                format!("input `{}` has dimensions {dims:?}, expected [batch, 3, h, w]", config.input),
+            ));
         }
         let s = config.input_size as i64;
         if (dims[2] > 0 && dims[2] != s) || (dims[3] > 0 && dims[3] != s) {
@@ -309,7 +325,14 @@ impl OnnxExtractor {
     }
 
     fn zero_map(channels: usize) -> FeatureMap {
-        FeatureMap { channels, height: 1, width: 1, data: vec![0.0; channels], cls: vec![0.0; channels], saliency: Some(vec![0.0]) }
+        FeatureMap {
+            channels,
+            height: 1,
+            width: 1,
+            data: vec![0.0; channels],
+            cls: vec![0.0; channels],
+            saliency: Some(vec![0.0]),
+        }
     }
 
     /// Features of a batch of preprocessed `[3, s, s]` inputs.
@@ -332,7 +355,13 @@ impl OnnxExtractor {
         (0..n).map(|b| self.feature_map(tokens, cls_out, sal_out, b)).collect()
     }
 
-    fn feature_map(&self, tokens: &Output, cls: Option<&Output>, saliency: Option<&Output>, b: usize) -> Result<FeatureMap, String> {
+    fn feature_map(
+        &self,
+        tokens: &Output,
+        cls: Option<&Output>,
+        saliency: Option<&Output>,
+        b: usize,
+    ) -> Result<FeatureMap, String> {
         let (channels, height, width, data, mut global) = match tokens.dims.as_slice() {
             [_, t, c] => {
                 let prefix = self.config.prefix_tokens;
@@ -352,14 +381,21 @@ impl OnnxExtractor {
                 let len = c * h * w;
                 (*c, *h, *w, tokens.data[b * len..(b + 1) * len].to_vec(), None)
             }
-            other => return Err(format!("output `{}` has dimensions {other:?}, expected [B, T, C] or [B, C, h, w]", self.config.tokens)),
+            other => {
+                return Err(format!(
+                    "output `{}` has dimensions {other:?}, expected [B, T, C] or [B, C, h, w]",
+                    self.config.tokens
+                ))
+            }
         };
         if let Some(out) = cls {
             let c = out.data.len() / out.dims.first().copied().unwrap_or(1).max(1);
             global = Some(out.data[b * c..(b + 1) * c].to_vec());
         }
         let np = height * width;
-        let global = global.unwrap_or_else(|| (0..channels).map(|k| data[k * np..(k + 1) * np].iter().sum::<f32>() / np as f32).collect());
+        let global = global.unwrap_or_else(|| {
+            (0..channels).map(|k| data[k * np..(k + 1) * np].iter().sum::<f32>() / np as f32).collect()
+        });
         let saliency = match saliency {
             Some(out) => {
                 let per = out.data.len() / out.dims.first().copied().unwrap_or(1).max(1);

@@ -26,7 +26,7 @@ fn tiny_model(sd: &StateDict) -> Vit {
     Vit::from_state_dict(sd, shape).expect("tiny ViT loads")
 }
 
-/// Max errors of tokens, normed tokens and [CLS] attention at both fixture resolutions.
+/// Max errors of tokens, normed tokens and \[CLS\] attention at both fixture resolutions.
 fn parity(model: &Vit, variant: &str) -> Vec<(String, f32)> {
     let inputs = io("vit_tiny");
     let expected = io(variant);
@@ -246,8 +246,10 @@ fn missing_or_foreign_weights_are_refused_helpfully() {
     let p = write("page.pth", b"<!DOCTYPE html><html>Not Found</html>");
     assert!(build_error(&tiny_config(&p)).contains("not a PyTorch zip checkpoint"));
     // Re-zipped with compression.
-    let compressed =
-        pth_bytes(&w.iter().map(|(n, a)| PthTensor::f32(n, a)).collect::<Vec<_>>(), &PthOptions { claim_compressed: true, ..Default::default() });
+    let compressed = pth_bytes(
+        &w.iter().map(|(n, a)| PthTensor::f32(n, a)).collect::<Vec<_>>(),
+        &PthOptions { claim_compressed: true, ..Default::default() },
+    );
     let p = write("rezipped.pth", &compressed);
     assert!(build_error(&tiny_config(&p)).contains("compressed"));
 
@@ -258,7 +260,10 @@ fn missing_or_foreign_weights_are_refused_helpfully() {
     t.storage.truncate(t.storage.len() / 2);
     let p = write("half.pth", &pth_bytes(&tensors, &PthOptions::default()));
     let msg = build_error(&tiny_config(&p));
-    assert!(msg.contains("blocks.1.attn.qkv.weight") && msg.contains("HalfStorage") && msg.contains("float32"), "{msg}");
+    assert!(
+        msg.contains("blocks.1.attn.qkv.weight") && msg.contains("HalfStorage") && msg.contains("float32"),
+        "{msg}"
+    );
     let sd = StateDict::load(&p).unwrap();
     assert!(matches!(sd.f32("blocks.1.attn.qkv.weight"), Err(CheckpointError::DType { .. })));
     let st = safetensors_bytes(&w, |n| if n == "norm.weight" { "F16" } else { "F32" });
@@ -267,14 +272,18 @@ fn missing_or_foreign_weights_are_refused_helpfully() {
     assert!(msg.contains("norm.weight") && msg.contains("F16"), "{msg}");
 
     // A state dict of another network.
-    let resnet: Vec<(String, F32Array)> = [("conv1.weight", vec![64, 3, 7, 7]), ("bn1.weight", vec![64]), ("fc.weight", vec![10, 64])]
-        .into_iter()
-        .map(|(n, s)| (n.to_string(), F32Array { data: vec![0.5; s.iter().product()], shape: s }))
-        .collect();
+    let resnet: Vec<(String, F32Array)> =
+        [("conv1.weight", vec![64, 3, 7, 7]), ("bn1.weight", vec![64]), ("fc.weight", vec![10, 64])]
+            .into_iter()
+            .map(|(n, s)| (n.to_string(), F32Array { data: vec![0.5; s.iter().product()], shape: s }))
+            .collect();
     let p = dir.join("resnet.pth");
     write_pth(&p, &resnet, &PthOptions::default());
     let msg = build_error(&tiny_config(&p));
-    assert!(msg.contains("not a DINO ViT checkpoint") && msg.contains("cls_token") && msg.contains("conv1.weight"), "{msg}");
+    assert!(
+        msg.contains("not a DINO ViT checkpoint") && msg.contains("cls_token") && msg.contains("conv1.weight"),
+        "{msg}"
+    );
     // A DINO ViT with a block tensor of the wrong shape.
     let mut broken = w.clone();
     broken.iter_mut().find(|(n, _)| n == "blocks.1.mlp.fc2.weight").unwrap().1.shape = vec![256, 64];
@@ -344,8 +353,8 @@ mod onnx_runtime {
 
     use super::*;
     use sos_backbones::dino_vit::onnx_export::write_vit;
-    use sos_backbones::onnx::{OnnxConfig, OnnxExtractor, OnnxModel};
     use sos_backbones::dino_vit::Resize;
+    use sos_backbones::onnx::{OnnxConfig, OnnxExtractor, OnnxModel};
 
     fn tiny(variant: &str, dir: &Path) -> Vit {
         let p = dir.join(format!("{variant}.safetensors"));
@@ -369,7 +378,10 @@ mod onnx_runtime {
             let expected = io(variant);
             let errors = vec![
                 (format!("{variant} tokens224"), max_abs_diff(&out[0].data, &expected.get("tokens224").unwrap().data)),
-                (format!("{variant} cls_attn224"), max_abs_diff(&out[1].data, &expected.get("cls_attn224").unwrap().data)),
+                (
+                    format!("{variant} cls_attn224"),
+                    max_abs_diff(&out[1].data, &expected.get("cls_attn224").unwrap().data),
+                ),
             ];
             assert_eq!(out[0].dims, vec![1, 197, 64]);
             assert_parity(&errors, "onnx");
@@ -393,7 +405,11 @@ mod onnx_runtime {
         let onnx = unwrap_build(OnnxExtractor::new(config.clone()));
         let native = DinoVit::new(vit, Preprocess::reference(16), "x".into(), 8);
         let images: Vec<RgbImage> = (0..3)
-            .map(|k| RgbImage { width: 64, height: 64, data: (0..64 * 64 * 3).map(|i| ((i * (k + 3)) % 101) as f32 / 100.0).collect() })
+            .map(|k| RgbImage {
+                width: 64,
+                height: 64,
+                data: (0..64 * 64 * 3).map(|i| ((i * (k + 3)) % 101) as f32 / 100.0).collect(),
+            })
             .collect();
         let (a, b) = (onnx.extract(&images).unwrap(), native.extract(&images).unwrap());
         for (x, y) in a.iter().zip(&b) {
@@ -419,7 +435,8 @@ mod onnx_runtime {
         let dir = temp_dir("onnx-missing");
         let model = dir.join("m.onnx");
         write_vit(&Vit::random(VitShape::dino(64, 16, 1, 2), 1), 64, Some(1), &model).unwrap();
-        let cfg = OnnxConfig { model: model.clone(), runtime: Some(dir.join("libonnxruntime.so")), ..Default::default() };
+        let cfg =
+            OnnxConfig { model: model.clone(), runtime: Some(dir.join("libonnxruntime.so")), ..Default::default() };
         let msg = OnnxExtractor::new(cfg).err().expect("no runtime there").to_string();
         assert!(msg.contains("pip install onnxruntime") && msg.contains("ORT_DYLIB_PATH"), "{msg}");
         let cfg = OnnxConfig { model: dir.join("absent.onnx"), ..Default::default() };

@@ -24,14 +24,9 @@ fn main() -> ExitCode {
             return ExitCode::from(2);
         }
     };
-    let mut cfg = SyntheticConfig {
-        rig,
-        ..Default::default()
-    };
+    let mut cfg = SyntheticConfig { rig, ..Default::default() };
     if let Some(size) = args.next() {
-        let parsed = size
-            .split_once('x')
-            .and_then(|(w, h)| Some((w.parse().ok()?, h.parse().ok()?)));
+        let parsed = size.split_once('x').and_then(|(w, h)| Some((w.parse().ok()?, h.parse().ok()?)));
         let Some((w, h)) = parsed else {
             eprintln!("error: size {size:?} must read WIDTHxHEIGHT, e.g. 80x60");
             return ExitCode::from(2);

@@ -54,26 +54,16 @@ pub fn nothing_derived<C>(_config: &C, _root: &Path, _scene: &Scene) -> Vec<sos_
 
 /// Splits `n` views: every `hold_out_every`-th view from 0 is a test view (none when 0).
 pub fn hold_out_split(n: usize, hold_out_every: usize) -> (Vec<usize>, Vec<usize>) {
-    let is_test = |i: usize| hold_out_every > 0 && i % hold_out_every == 0;
-    (
-        (0..n).filter(|&i| !is_test(i)).collect(),
-        (0..n).filter(|&i| is_test(i)).collect(),
-    )
+    let is_test = |i: usize| hold_out_every > 0 && i.is_multiple_of(hold_out_every);
+    ((0..n).filter(|&i| !is_test(i)).collect(), (0..n).filter(|&i| is_test(i)).collect())
 }
 
 /// [`hold_out_split`] of `n` loaded views, refused (naming `root`) when it leaves no training
 /// view.
-pub fn hold_out_views(
-    root: &Path,
-    n: usize,
-    hold_out_every: usize,
-) -> Result<(Vec<usize>, Vec<usize>), DatasetError> {
+pub fn hold_out_views(root: &Path, n: usize, hold_out_every: usize) -> Result<(Vec<usize>, Vec<usize>), DatasetError> {
     let (train, test) = hold_out_split(n, hold_out_every);
     if train.is_empty() {
-        return Err(invalid(
-            root,
-            "no training views left; raise `hold_out_every` or set it to 0",
-        ));
+        return Err(invalid(root, "no training views left; raise `hold_out_every` or set it to 0"));
     }
     Ok((train, test))
 }
@@ -88,13 +78,5 @@ pub fn orbit_scene(
     extent: SceneExtent,
     near: f32,
 ) -> Scene {
-    Scene {
-        render_path: orbit_path_around(&views, &train, &extent),
-        name,
-        views,
-        train,
-        test,
-        extent,
-        near,
-    }
+    Scene { render_path: orbit_path_around(&views, &train, &extent), name, views, train, test, extent, near }
 }

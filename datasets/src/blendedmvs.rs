@@ -30,7 +30,7 @@ use crate::image_files::{check_images_for, find_with_stem, list_images, stem};
 use crate::pose::{self, Pose};
 use crate::tanks_temples::parse_c2w_opencv;
 use crate::text::{invalid, number, read_text};
-use crate::views::{NO_AABB, check_aabb, checked_camera, extent_of, optional_mask, scene_name, Intrinsics};
+use crate::views::{check_aabb, checked_camera, extent_of, optional_mask, scene_name, Intrinsics, NO_AABB};
 
 /// Which BlendedMVS layout to read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -64,13 +64,7 @@ pub struct BlendedMvsConfig {
 
 impl Default for BlendedMvsConfig {
     fn default() -> Self {
-        BlendedMvsConfig {
-            path: PathBuf::new(),
-            layout: Layout::Auto,
-            hold_out_every: 8,
-            aabb: None,
-            near: None,
-        }
+        BlendedMvsConfig { path: PathBuf::new(), layout: Layout::Auto, hold_out_every: 8, aabb: None, near: None }
     }
 }
 
@@ -95,7 +89,11 @@ fn holds_most_cameras([min, max]: [Vec3; 2], views: &[View], train: &[usize]) ->
 }
 
 /// The extent this adapter chose where the config gives no `aabb`.
-fn derived_blendedmvs(cfg: &BlendedMvsConfig, root: &Path, scene: &sos_core::scene::Scene) -> Vec<sos_core::derived::DerivedSetting> {
+fn derived_blendedmvs(
+    cfg: &BlendedMvsConfig,
+    root: &Path,
+    scene: &sos_core::scene::Scene,
+) -> Vec<sos_core::derived::DerivedSetting> {
     match cfg.aabb {
         Some(_) => Vec::new(),
         None => {
@@ -145,9 +143,7 @@ pub fn parse_cam_txt(path: &Path, text: &str) -> Result<MvsCam, DatasetError> {
     expect(0, "extrinsic")?;
     expect(17, "intrinsic")?;
     let num = |i: usize| -> Result<f64, DatasetError> {
-        let t = tokens
-            .get(i)
-            .ok_or_else(|| invalid(path, format!("truncated: token {} is missing", i + 1)))?;
+        let t = tokens.get(i).ok_or_else(|| invalid(path, format!("truncated: token {} is missing", i + 1)))?;
         number(path, t, &format!("token {}", i + 1))
     };
     let e: Vec<f64> = (1..17).map(num).collect::<Result<_, _>>()?;
@@ -172,21 +168,11 @@ pub fn parse_cam_txt(path: &Path, text: &str) -> Result<MvsCam, DatasetError> {
         }
     };
     if !(depth[0] > 0.0 && depth[1] > depth[0]) {
-        return Err(invalid(
-            path,
-            format!("depth range must satisfy 0 < min < max, got {depth:?}"),
-        ));
+        return Err(invalid(path, format!("depth range must satisfy 0 < min < max, got {depth:?}")));
     }
     let kk = [[k[0], k[1], k[2]], [k[3], k[4], k[5]], [k[6], k[7], k[8]]];
-    if kk[0][1] != 0.0
-        || kk[1][0] != 0.0
-        || kk[2] != [0.0, 0.0, 1.0]
-        || !(kk[0][0] > 0.0 && kk[1][1] > 0.0)
-    {
-        return Err(invalid(
-            path,
-            "intrinsic must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0",
-        ));
+    if kk[0][1] != 0.0 || kk[1][0] != 0.0 || kk[2] != [0.0, 0.0, 1.0] || !(kk[0][0] > 0.0 && kk[1][1] > 0.0) {
+        return Err(invalid(path, "intrinsic must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0"));
     }
     Ok(MvsCam {
         rotation: [[e[0], e[1], e[2]], [e[4], e[5], e[6]], [e[8], e[9], e[10]]],
@@ -208,13 +194,7 @@ pub fn format_cam_txt(cam: &MvsCam) -> String {
         s += &format!("{} {} {}\n", row[0], row[1], row[2]);
     }
     let n = 192.0;
-    s += &format!(
-        "\n{} {} {} {}\n",
-        cam.depth[0],
-        (cam.depth[1] - cam.depth[0]) / (n - 1.0),
-        n,
-        cam.depth[1]
-    );
+    s += &format!("\n{} {} {} {}\n", cam.depth[0], (cam.depth[1] - cam.depth[0]) / (n - 1.0), n, cam.depth[1]);
     s
 }
 
@@ -256,10 +236,7 @@ fn load_original(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetEr
             hint: "the original BlendedMVS layout keeps its images in blended_images/".into(),
         });
     }
-    let images: Vec<PathBuf> = list_images(&img_dir)?
-        .into_iter()
-        .filter(|p| !stem(p).ends_with("_masked"))
-        .collect();
+    let images: Vec<PathBuf> = list_images(&img_dir)?.into_iter().filter(|p| !stem(p).ends_with("_masked")).collect();
     if images.is_empty() {
         return Err(invalid(&img_dir, "no images (.jpg/.png) in the folder"));
     }
@@ -275,10 +252,7 @@ fn load_original(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetEr
             if find_with_stem(&img_dir, id).is_none() {
                 return Err(invalid(
                     &p,
-                    format!(
-                        "no image {id}.jpg in {}; remove the camera file or add the image",
-                        img_dir.display()
-                    ),
+                    format!("no image {id}.jpg in {}; remove the camera file or add the image", img_dir.display()),
                 ));
             }
         }
@@ -291,12 +265,7 @@ fn load_original(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetEr
             let text = read_text(&cam_path, &format!("the camera of {}", img_path.display()))?;
             let cam = parse_cam_txt(&cam_path, &text)?;
             let pose: Pose = pose::from_world_to_camera(&cam.rotation, cam.translation)
-                .ok_or_else(|| {
-                    invalid(
-                        &cam_path,
-                        "extrinsic rotation is singular; fix or drop this camera",
-                    )
-                })?;
+                .ok_or_else(|| invalid(&cam_path, "extrinsic rotation is singular; fix or drop this camera"))?;
             let image = sos_core::image::RgbImage::load(img_path)?;
             let k = Intrinsics {
                 width: image.width as u32,
@@ -308,15 +277,7 @@ fn load_original(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetEr
             };
             let camera = checked_camera(&cam_path, "extrinsic", &pose, &k)?;
             let mask = optional_mask(masks_for(root, s).as_deref(), image.width, image.height)?;
-            Ok((
-                View {
-                    name: s.to_string(),
-                    camera,
-                    image,
-                    mask,
-                },
-                cam.depth[0],
-            ))
+            Ok((View { name: s.to_string(), camera, image, mask }, cam.depth[0]))
         })
         .collect::<Result<_, DatasetError>>()?;
     let min_depth = loaded.iter().map(|l| l.1).fold(f64::INFINITY, f64::min);
@@ -353,21 +314,12 @@ pub fn parse_bbox(path: &Path, text: &str) -> Result<[Vec3; 2], DatasetError> {
     if v.len() != 6 && v.len() != 7 {
         return Err(invalid(
             path,
-            format!(
-                "expected xmin ymin zmin xmax ymax zmax [voxel_size], found {} numbers",
-                v.len()
-            ),
+            format!("expected xmin ymin zmin xmax ymax zmax [voxel_size], found {} numbers", v.len()),
         ));
     }
-    let b = [
-        [v[0] as f32, v[1] as f32, v[2] as f32],
-        [v[3] as f32, v[4] as f32, v[5] as f32],
-    ];
+    let b = [[v[0] as f32, v[1] as f32, v[2] as f32], [v[3] as f32, v[4] as f32, v[5] as f32]];
     if !(0..3).all(|k| b[0][k] < b[1][k]) {
-        return Err(invalid(
-            path,
-            "bounding box min must be below max on every axis",
-        ));
+        return Err(invalid(path, "bounding box min must be below max on every axis"));
     }
     Ok(b)
 }
@@ -387,24 +339,16 @@ fn load_nsvf(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetError>
     if !rgb.is_dir() {
         return Err(DatasetError::Missing {
             path: rgb,
-            hint:
-                "the NSVF layout keeps its images in rgb/ (or use the original layout with cams/)"
-                    .into(),
+            hint: "the NSVF layout keeps its images in rgb/ (or use the original layout with cams/)".into(),
         });
     }
     let k_path = root.join("intrinsics.txt");
-    let k = parse_nsvf_intrinsics(
-        &k_path,
-        &read_text(&k_path, "the NSVF layout needs one intrinsics.txt")?,
-    )?;
+    let k = parse_nsvf_intrinsics(&k_path, &read_text(&k_path, "the NSVF layout needs one intrinsics.txt")?)?;
     let bbox = match cfg.aabb {
         Some(b) => Some(b),
         None => {
             let p = root.join("bbox.txt");
-            Some(parse_bbox(
-                &p,
-                &read_text(&p, "the NSVF layout needs bbox.txt (or set `aabb`)")?,
-            )?)
+            Some(parse_bbox(&p, &read_text(&p, "the NSVF layout needs bbox.txt (or set `aabb`)")?)?)
         }
     };
     let mut images = list_images(&rgb)?;
@@ -424,9 +368,7 @@ fn load_nsvf(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetError>
     if let Ok(entries) = std::fs::read_dir(&pose_dir) {
         check_images_for(entries, &rgb)?;
     }
-    let has_test = images
-        .iter()
-        .any(|p| split_prefix(stem(p)).is_some_and(|(s, _)| s == 2));
+    let has_test = images.iter().any(|p| split_prefix(stem(p)).is_some_and(|(s, _)| s == 2));
     let test_prefix = if has_test { 2 } else { 1 };
     // Validation views are not loaded when a test split exists.
     images.retain(|p| split_prefix(stem(p)).is_some_and(|(s, _)| s == 0 || s == test_prefix));
@@ -436,10 +378,8 @@ fn load_nsvf(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetError>
             let s = stem(img_path);
             let (split, name) = split_prefix(s).expect("checked above");
             let pose_path = pose_dir.join(format!("{s}.txt"));
-            let pose = parse_c2w_opencv(
-                &pose_path,
-                &read_text(&pose_path, &format!("the pose of {}", img_path.display()))?,
-            )?;
+            let pose =
+                parse_c2w_opencv(&pose_path, &read_text(&pose_path, &format!("the pose of {}", img_path.display()))?)?;
             let image = sos_core::image::RgbImage::load(img_path)?;
             let intr = Intrinsics {
                 width: image.width as u32,
@@ -451,21 +391,11 @@ fn load_nsvf(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetError>
             };
             let camera = checked_camera(&pose_path, "camera-to-world matrix", &pose, &intr)?;
             let mask = optional_mask(masks_for(root, s).as_deref(), image.width, image.height)?;
-            Ok((
-                split,
-                View {
-                    name: name.to_string(),
-                    camera,
-                    image,
-                    mask,
-                },
-            ))
+            Ok((split, View { name: name.to_string(), camera, image, mask }))
         })
         .collect::<Result<_, DatasetError>>()?;
     let train: Vec<usize> = (0..views.len()).filter(|&i| views[i].0 == 0).collect();
-    let test: Vec<usize> = (0..views.len())
-        .filter(|&i| views[i].0 == test_prefix)
-        .collect();
+    let test: Vec<usize> = (0..views.len()).filter(|&i| views[i].0 == test_prefix).collect();
     if train.is_empty() {
         return Err(invalid(&rgb, "no training image (prefix 0_)"));
     }

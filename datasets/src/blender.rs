@@ -123,21 +123,14 @@ fn read_split(root: &Path, split: &str) -> Result<(f64, Vec<FrameFile>), Dataset
     let text = std::fs::read_to_string(&path).map_err(|e| match e.kind() {
         std::io::ErrorKind::NotFound => DatasetError::Missing {
             path: path.clone(),
-            hint: "a Blender-layout scene needs transforms_train.json and transforms_test.json"
-                .into(),
+            hint: "a Blender-layout scene needs transforms_train.json and transforms_test.json".into(),
         },
         _ => invalid(&path, format!("cannot read: {e}")),
     })?;
-    let t: Transforms = serde_json::from_str(&text)
-        .map_err(|e| invalid(&path, format!("malformed transforms JSON: {e}")))?;
-    if !(t.camera_angle_x.is_finite()
-        && t.camera_angle_x > 0.0
-        && t.camera_angle_x < std::f64::consts::PI)
-    {
-        return Err(invalid(
-            &path,
-            format!("camera_angle_x must be in (0, π), got {}", t.camera_angle_x),
-        ));
+    let t: Transforms =
+        serde_json::from_str(&text).map_err(|e| invalid(&path, format!("malformed transforms JSON: {e}")))?;
+    if !(t.camera_angle_x.is_finite() && t.camera_angle_x > 0.0 && t.camera_angle_x < std::f64::consts::PI) {
+        return Err(invalid(&path, format!("camera_angle_x must be in (0, π), got {}", t.camera_angle_x)));
     }
     let frames = t
         .frames
@@ -146,16 +139,10 @@ fn read_split(root: &Path, split: &str) -> Result<(f64, Vec<FrameFile>), Dataset
         .map(|(i, f)| {
             let m = &f.transform_matrix;
             if m.len() != 4 || m.iter().any(|r| r.len() != 4) {
-                return Err(invalid(
-                    &path,
-                    format!("frame {i}: transform_matrix must be 4x4"),
-                ));
+                return Err(invalid(&path, format!("frame {i}: transform_matrix must be 4x4")));
             }
             if m.iter().flatten().any(|v| !v.is_finite()) {
-                return Err(invalid(
-                    &path,
-                    format!("frame {i}: transform_matrix has NaN or inf"),
-                ));
+                return Err(invalid(&path, format!("frame {i}: transform_matrix has NaN or inf")));
             }
             let mut cam_to_world = [[0.0f32; 4]; 3];
             for r in 0..3 {
@@ -178,11 +165,7 @@ fn read_split(root: &Path, split: &str) -> Result<(f64, Vec<FrameFile>), Dataset
                 }
                 _ => rel,
             };
-            Ok(FrameFile {
-                image,
-                rel,
-                cam_to_world,
-            })
+            Ok(FrameFile { image, rel, cam_to_world })
         })
         .collect::<Result<_, _>>()?;
     Ok((t.camera_angle_x, frames))
@@ -206,12 +189,8 @@ fn frame_camera(width: usize, height: usize, angle: f64, cam_to_world: [[f32; 4]
 /// Reads an image, compositing its alpha (if any) on `background`; also returns the alpha
 /// channel (all ones for images without one).
 fn load_composited(path: &Path, background: f32) -> Result<(RgbImage, Vec<f32>), DatasetError> {
-    let img = image::open(path).map_err(|e| {
-        invalid(
-            path,
-            format!("cannot decode image ({e}); re-export it as PNG or JPEG"),
-        )
-    })?;
+    let img = image::open(path)
+        .map_err(|e| invalid(path, format!("cannot decode image ({e}); re-export it as PNG or JPEG")))?;
     let rgba = img.to_rgba32f();
     let (w, h) = rgba.dimensions();
     if w == 0 || h == 0 {
@@ -263,12 +242,7 @@ fn silhouette(camera: &Camera, alpha: &[f32], focus: Vec3) -> Silhouette {
 /// The derived extent and `near`: where most training views are cut-outs, a cube around
 /// `focus` holding every silhouette cone of a view that looks at the focus (kept clear of the
 /// nearest camera); else the unbounded extent of opaque layouts.
-fn derived_extent(
-    views: &[View],
-    train: &[usize],
-    silhouettes: &[Silhouette],
-    focus: Vec3,
-) -> (SceneExtent, f32) {
+fn derived_extent(views: &[View], train: &[usize], silhouettes: &[Silhouette], focus: Vec3) -> (SceneExtent, f32) {
     let cut_outs = train.iter().filter(|&&i| silhouettes[i].cut_out).count();
     let cut_out = 2 * cut_outs > train.len();
     // Each silhouette cone bounds the object; at the focus distance its radius is d tan θ.
@@ -324,10 +298,7 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
     if cfg.test_split != "test" && cfg.test_split != "val" {
         return Err(invalid(
             root,
-            format!(
-                "config key `test_split` must be \"test\" or \"val\", got {:?}",
-                cfg.test_split
-            ),
+            format!("config key `test_split` must be \"test\" or \"val\", got {:?}", cfg.test_split),
         ));
     }
     check_aabb(root, cfg.aabb)?;
@@ -339,8 +310,7 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
     if !root.is_dir() {
         return Err(DatasetError::Missing {
             path: root.to_path_buf(),
-            hint: "expected a Blender-layout scene folder with transforms_*.json; check `path`"
-                .into(),
+            hint: "expected a Blender-layout scene folder with transforms_*.json; check `path`".into(),
         });
     }
     let (angle_train, train_frames) = read_split(root, "train")?;
@@ -373,9 +343,7 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
             }
             let (w, h) = (image.width, image.height);
             let camera = frame_camera(w, h, *angle, f.cam_to_world);
-            camera
-                .validate()
-                .map_err(|e| invalid(&f.image, format!("pose of this frame: {e}")))?;
+            camera.validate().map_err(|e| invalid(&f.image, format!("pose of this frame: {e}")))?;
             let rel = Path::new(&f.rel);
             let mask_dir = mask_root.join(rel.parent().unwrap_or(Path::new("")));
             let mask = match find_with_stem(&mask_dir, stem(rel)) {
@@ -392,11 +360,7 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
             "no mask mirrors an image path; the mask of train/r_0.png must be masks/train/r_0.png",
         ));
     }
-    let name = root
-        .file_name()
-        .and_then(|n| n.to_str())
-        .unwrap_or("blender")
-        .to_string();
+    let name = root.file_name().and_then(|n| n.to_str()).unwrap_or("blender").to_string();
     let train: Vec<usize> = (0..n_train).collect();
     let (extent, derived_near) = match cfg.aabb {
         Some([min, max]) => (SceneExtent::Bounded { min, max }, near_of_box(&views, &train, min, max)),
@@ -451,11 +415,7 @@ pub(crate) fn orbit_path(train: &[&Camera], centre: Vec3, n: usize) -> Vec<Camer
 
 /// The 40-view orbit of [`orbit_path`] around the centre of a bounded or unbounded extent
 /// (empty for forward-facing extents, whose render path is the LLFF spiral).
-pub(crate) fn orbit_path_around(
-    views: &[View],
-    train: &[usize],
-    extent: &SceneExtent,
-) -> Vec<Camera> {
+pub(crate) fn orbit_path_around(views: &[View], train: &[usize], extent: &SceneExtent) -> Vec<Camera> {
     let centre = match *extent {
         SceneExtent::Bounded { min, max } => [0, 1, 2].map(|k| 0.5 * (min[k] + max[k])),
         SceneExtent::Unbounded { center, .. } => center,
@@ -509,66 +469,27 @@ mod tests {
         let order: Vec<usize> = scene.train.iter().chain(&scene.test).copied().collect();
         for (&i, l) in order.iter().zip(&loaded.views) {
             let o = &scene.views[i];
-            assert_eq!(
-                o.camera.cam_to_world, l.camera.cam_to_world,
-                "view {}",
-                o.name
-            );
+            assert_eq!(o.camera.cam_to_world, l.camera.cam_to_world, "view {}", o.name);
             assert!((o.camera.fx - l.camera.fx).abs() < 1e-3 && l.camera.cx == 48.0);
-            let err = o
-                .image
-                .data
-                .iter()
-                .zip(&l.image.data)
-                .map(|(p, q)| (p - q).abs())
-                .fold(0.0, f32::max);
+            let err = o.image.data.iter().zip(&l.image.data).map(|(p, q)| (p - q).abs()).fold(0.0, f32::max);
             assert!(err <= 0.5 / 255.0 + 1e-5, "view {}: {err}", o.name);
             assert_eq!(o.mask, l.mask, "view {}", o.name);
         }
-        assert_eq!(
-            loaded.extent,
-            SceneExtent::Bounded {
-                min: ROOM_MIN,
-                max: ROOM_MAX
-            }
-        );
+        assert_eq!(loaded.extent, SceneExtent::Bounded { min: ROOM_MIN, max: ROOM_MAX });
         assert_eq!(loaded.render_path.len(), 40);
         for cam in &loaded.render_path {
             cam.validate().unwrap();
         }
         // The val split is written as a copy of test.
-        let val = load_blender(
-            &BlenderConfig {
-                test_split: "val".into(),
-                ..room_cfg(&dir)
-            },
-            &dir,
-        )
-        .unwrap();
+        let val = load_blender(&BlenderConfig { test_split: "val".into(), ..room_cfg(&dir) }, &dir).unwrap();
         assert_eq!(val.test.len(), 2);
         // Downscaling halves images and focal lengths; full-size masks are then an error.
-        let half = load_blender(
-            &BlenderConfig {
-                downscale: 2,
-                ..room_cfg(&dir)
-            },
-            &dir,
-        );
+        let half = load_blender(&BlenderConfig { downscale: 2, ..room_cfg(&dir) }, &dir);
         let err = half.map(|_| ()).unwrap_err().to_string();
         assert!(err.contains("masks") && err.contains("resize"), "{err}");
         std::fs::remove_dir_all(dir.join("masks")).unwrap();
-        let half = load_blender(
-            &BlenderConfig {
-                downscale: 2,
-                ..room_cfg(&dir)
-            },
-            &dir,
-        )
-        .unwrap();
-        assert_eq!(
-            (half.views[0].image.width, half.views[0].image.height),
-            (48, 36)
-        );
+        let half = load_blender(&BlenderConfig { downscale: 2, ..room_cfg(&dir) }, &dir).unwrap();
+        assert_eq!((half.views[0].image.width, half.views[0].image.height), (48, 36));
         assert!((half.views[0].camera.fx - loaded.views[0].camera.fx / 2.0).abs() < 1e-3);
         std::fs::remove_dir_all(dir).ok();
     }
@@ -592,20 +513,13 @@ mod tests {
         }
         img.save(dir.join("train/r_0.png")).unwrap();
         write_minimal(&dir, ONE_FRAME);
-        let white = BlenderConfig {
-            path: dir.clone(),
-            ..Default::default()
-        };
+        let white = BlenderConfig { path: dir.clone(), ..Default::default() };
         let white = load_blender(&white, &dir).unwrap();
         let v = &white.views[0];
         assert_eq!(v.image.pixel(0, 0), [1.0, 1.0, 1.0]);
         assert_eq!(v.image.pixel(3, 1), [1.0, 0.0, 0.0]);
         assert!((v.camera.fx - 2.0 / (0.6911f32 / 2.0).tan()).abs() < 1e-4);
-        let black = BlenderConfig {
-            white_background: false,
-            path: dir.clone(),
-            ..Default::default()
-        };
+        let black = BlenderConfig { white_background: false, path: dir.clone(), ..Default::default() };
         let black = load_blender(&black, &dir).unwrap();
         assert_eq!(black.views[0].image.pixel(0, 0), [0.0, 0.0, 0.0]);
         assert!(black.test.is_empty() && black.views[0].mask.is_none());
@@ -616,18 +530,10 @@ mod tests {
     fn hostile_inputs_are_errors_naming_the_file() {
         let dir = temp_dir("bad");
         std::fs::create_dir_all(dir.join("train")).unwrap();
-        image::RgbImage::new(4, 2)
-            .save(dir.join("train/r_0.png"))
-            .unwrap();
+        image::RgbImage::new(4, 2).save(dir.join("train/r_0.png")).unwrap();
         let open = || {
-            let cfg = BlenderConfig {
-                path: dir.clone(),
-                ..Default::default()
-            };
-            load_blender(&cfg, &dir)
-                .map(|_| ())
-                .unwrap_err()
-                .to_string()
+            let cfg = BlenderConfig { path: dir.clone(), ..Default::default() };
+            load_blender(&cfg, &dir).map(|_| ()).unwrap_err().to_string()
         };
         let frame = |path: &str, matrix: &str| {
             format!(
@@ -636,36 +542,16 @@ mod tests {
             )
         };
         let cases = [
-            (
-                "malformed",
-                r#"{"camera_angle_x": 0.7, "frames": [{"file_path": }"#.to_string(),
-                "transforms_train.json",
-            ),
-            (
-                "no frames",
-                r#"{"camera_angle_x": 0.7}"#.to_string(),
-                "transforms_train.json",
-            ),
-            (
-                "3x4 matrix",
-                frame("./train/r_0", "[[1,0,0,0],[0,1,0,0],[0,0,1,4]]"),
-                "transforms_train.json",
-            ),
+            ("malformed", r#"{"camera_angle_x": 0.7, "frames": [{"file_path": }"#.to_string(), "transforms_train.json"),
+            ("no frames", r#"{"camera_angle_x": 0.7}"#.to_string(), "transforms_train.json"),
+            ("3x4 matrix", frame("./train/r_0", "[[1,0,0,0],[0,1,0,0],[0,0,1,4]]"), "transforms_train.json"),
             (
                 "scaled rotation",
                 frame("./train/r_0", "[[2,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]"),
                 "transforms_train.json",
             ),
-            (
-                "bad angle",
-                r#"{"camera_angle_x": -1, "frames": []}"#.to_string(),
-                "transforms_train.json",
-            ),
-            (
-                "missing image",
-                frame("./train/r_9", "[[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]"),
-                "r_9",
-            ),
+            ("bad angle", r#"{"camera_angle_x": -1, "frames": []}"#.to_string(), "transforms_train.json"),
+            ("missing image", frame("./train/r_9", "[[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]"), "r_9"),
         ];
         for (what, json, needle) in cases {
             write_minimal(&dir, &json);
@@ -674,9 +560,7 @@ mod tests {
         }
         write_minimal(&dir, ONE_FRAME);
         std::fs::create_dir_all(dir.join("masks/train")).unwrap();
-        image::GrayImage::new(3, 3)
-            .save(dir.join("masks/train/r_0.png"))
-            .unwrap();
+        image::GrayImage::new(3, 3).save(dir.join("masks/train/r_0.png")).unwrap();
         let err = open();
         assert!(err.contains("r_0.png") && err.contains("resize"), "{err}");
         std::fs::remove_dir_all(dir.join("masks")).unwrap();
@@ -685,10 +569,7 @@ mod tests {
         assert!(err.contains("r_0.png"), "{err}");
         std::fs::remove_file(dir.join("transforms_test.json")).unwrap();
         let err = open();
-        assert!(
-            err.contains("transforms_test.json") && err.contains("missing"),
-            "{err}"
-        );
+        assert!(err.contains("transforms_test.json") && err.contains("missing"), "{err}");
         std::fs::remove_dir_all(dir).ok();
     }
 
@@ -739,7 +620,9 @@ mod tests {
         // The object (sphere and pedestal down to the floor) lies inside, and the box is far
         // smaller than the room the cameras stand in.
         for k in 0..3 {
-            let (lo, hi) = if k == 1 { (0.0, OBJECT_CENTRE[1] + OBJECT_RADIUS) } else {
+            let (lo, hi) = if k == 1 {
+                (0.0, OBJECT_CENTRE[1] + OBJECT_RADIUS)
+            } else {
                 (OBJECT_CENTRE[k] - OBJECT_RADIUS, OBJECT_CENTRE[k] + OBJECT_RADIUS)
             };
             assert!(min[k] <= lo && max[k] >= hi, "axis {k}: box {min:?}..{max:?}");

@@ -30,9 +30,7 @@ use sos_core::scene::{Scene, View};
 use crate::adapter::{hold_out_views, orbit_scene, register_dataset};
 use crate::pose::{self, Pose, M3, V3};
 use crate::text::{invalid, read_bytes};
-use crate::views::{NO_AABB, 
-    check_aabb, checked_camera, extent_of, load_image_sized, optional_mask, Intrinsics,
-};
+use crate::views::{check_aabb, checked_camera, extent_of, load_image_sized, optional_mask, Intrinsics, NO_AABB};
 
 /// Configuration of the `co3d` dataset (`[scene] kind = "co3d"`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -53,13 +51,7 @@ pub struct Co3dConfig {
 
 impl Default for Co3dConfig {
     fn default() -> Self {
-        Co3dConfig {
-            path: PathBuf::new(),
-            sequence: None,
-            hold_out_every: 8,
-            aabb: None,
-            near: 0.0,
-        }
+        Co3dConfig { path: PathBuf::new(), sequence: None, hold_out_every: 8, aabb: None, near: 0.0 }
     }
 }
 
@@ -72,7 +64,11 @@ register_dataset!(
 );
 
 /// The extent this adapter chose where the config gives no `aabb`.
-fn derived_co3d(cfg: &Co3dConfig, _root: &Path, scene: &sos_core::scene::Scene) -> Vec<sos_core::derived::DerivedSetting> {
+fn derived_co3d(
+    cfg: &Co3dConfig,
+    _root: &Path,
+    scene: &sos_core::scene::Scene,
+) -> Vec<sos_core::derived::DerivedSetting> {
     match cfg.aabb {
         Some(_) => Vec::new(),
         None => vec![crate::views::extent_setting(scene, NO_AABB)],
@@ -153,41 +149,25 @@ pub struct SequenceAnnotation {
 const MAX_JSON: u64 = 4 << 30;
 
 /// Reads a gzip-compressed JSON file into `T`.
-pub fn read_jgz<T: serde::de::DeserializeOwned>(
-    path: &Path,
-    hint: &str,
-) -> Result<T, DatasetError> {
+pub fn read_jgz<T: serde::de::DeserializeOwned>(path: &Path, hint: &str) -> Result<T, DatasetError> {
     parse_jgz(path, &read_bytes(path, hint)?)
 }
 
 /// Parses gzip-compressed JSON bytes (read from `path`, which errors name) into `T`.
-pub fn parse_jgz<T: serde::de::DeserializeOwned>(
-    path: &Path,
-    bytes: &[u8],
-) -> Result<T, DatasetError> {
+pub fn parse_jgz<T: serde::de::DeserializeOwned>(path: &Path, bytes: &[u8]) -> Result<T, DatasetError> {
     let mut text = Vec::new();
     flate2::read::GzDecoder::new(bytes)
         .take(MAX_JSON)
         .read_to_end(&mut text)
-        .map_err(|e| {
-            invalid(
-                path,
-                format!("not a valid gzip file ({e}); re-download or re-compress it with gzip"),
-            )
-        })?;
-    serde_json::from_slice(&text).map_err(|e| {
-        invalid(
-            path,
-            format!("malformed annotation JSON ({e}); re-download the annotations"),
-        )
-    })
+        .map_err(|e| invalid(path, format!("not a valid gzip file ({e}); re-download or re-compress it with gzip")))?;
+    serde_json::from_slice(&text)
+        .map_err(|e| invalid(path, format!("malformed annotation JSON ({e}); re-download the annotations")))
 }
 
 /// Writes `value` as gzip-compressed JSON.
 pub fn write_jgz<T: Serialize>(path: &Path, value: &T) -> Result<(), DatasetError> {
     use std::io::Write;
-    let json =
-        serde_json::to_vec(value).map_err(|e| invalid(path, format!("cannot serialise: {e}")))?;
+    let json = serde_json::to_vec(value).map_err(|e| invalid(path, format!("cannot serialise: {e}")))?;
     let mut enc = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
     enc.write_all(&json)
         .and_then(|_| enc.finish())
@@ -204,11 +184,7 @@ pub fn intrinsics_from_ndc(vp: &ViewpointAnnotation, size: [u64; 2]) -> Result<I
             (s, s)
         }
         "ndc_norm_image_bounds" => (0.5 * w, 0.5 * h),
-        f => {
-            return Err(format!(
-                "unknown intrinsics_format {f:?} (ndc_isotropic or ndc_norm_image_bounds)"
-            ))
-        }
+        f => return Err(format!("unknown intrinsics_format {f:?} (ndc_isotropic or ndc_norm_image_bounds)")),
     };
     let size32 = |v: u64| u32::try_from(v).ok().filter(|&s| s > 0);
     let (Some(width), Some(height)) = (size32(size[1]), size32(size[0])) else {
@@ -228,15 +204,8 @@ pub fn intrinsics_from_ndc(vp: &ViewpointAnnotation, size: [u64; 2]) -> Result<I
 /// [`intrinsics_from_ndc`]).
 pub fn ndc_from_intrinsics(k: &Intrinsics, isotropic: bool) -> ([f64; 2], [f64; 2]) {
     let (w, h) = (k.width as f64, k.height as f64);
-    let (sx, sy) = if isotropic {
-        (0.5 * w.min(h), 0.5 * w.min(h))
-    } else {
-        (0.5 * w, 0.5 * h)
-    };
-    (
-        [k.fx / sx, k.fy / sy],
-        [(0.5 * w - k.cx) / sx, (0.5 * h - k.cy) / sy],
-    )
+    let (sx, sy) = if isotropic { (0.5 * w.min(h), 0.5 * w.min(h)) } else { (0.5 * w, 0.5 * h) };
+    ([k.fx / sx, k.fy / sy], [(0.5 * w - k.cx) / sx, (0.5 * h - k.cy) / sy])
 }
 
 /// Pose (OpenGL axes) of a PyTorch3D camera `X_cam = X_world · R + T`: the camera axes (left,
@@ -285,10 +254,7 @@ fn choose_sequence(
     names.sort_unstable();
     names.dedup();
     if names.is_empty() {
-        return Err(invalid(
-            frames_path,
-            "no frame annotations; re-download the category",
-        ));
+        return Err(invalid(frames_path, "no frame annotations; re-download the category"));
     }
     if let Some(s) = &cfg.sequence {
         if names.binary_search(&s.as_str()).is_err() {
@@ -325,8 +291,7 @@ pub fn load_co3d(cfg: &Co3dConfig, root: &Path) -> Result<Scene, DatasetError> {
     if !root.is_dir() {
         return Err(DatasetError::Missing {
             path: root.to_path_buf(),
-            hint: "expected a CO3Dv2 category folder with frame_annotations.jgz; check `path`"
-                .into(),
+            hint: "expected a CO3Dv2 category folder with frame_annotations.jgz; check `path`".into(),
         });
     }
     let frames_path = root.join("frame_annotations.jgz");
@@ -335,21 +300,12 @@ pub fn load_co3d(cfg: &Co3dConfig, root: &Path) -> Result<Scene, DatasetError> {
     let frames: Vec<FrameAnnotation> = read_jgz(&frames_path, hint)?;
     let seqs: Vec<SequenceAnnotation> = read_jgz(&seqs_path, hint)?;
     let sequence = choose_sequence(cfg, &frames, &seqs, &frames_path)?;
-    let mut frames: Vec<&FrameAnnotation> = frames
-        .iter()
-        .filter(|f| f.sequence_name == sequence)
-        .collect();
+    let mut frames: Vec<&FrameAnnotation> = frames.iter().filter(|f| f.sequence_name == sequence).collect();
     frames.sort_by_key(|f| f.frame_number);
-    if let Some(w) = frames
-        .windows(2)
-        .find(|w| w[0].frame_number == w[1].frame_number)
-    {
+    if let Some(w) = frames.windows(2).find(|w| w[0].frame_number == w[1].frame_number) {
         return Err(invalid(
             &frames_path,
-            format!(
-                "sequence {sequence}: frame_number {} appears twice",
-                w[0].frame_number
-            ),
+            format!("sequence {sequence}: frame_number {} appears twice", w[0].frame_number),
         ));
     }
     let views: Vec<View> = frames
@@ -357,25 +313,13 @@ pub fn load_co3d(cfg: &Co3dConfig, root: &Path) -> Result<Scene, DatasetError> {
         .map(|f| {
             let what = format!("sequence {sequence} frame {}", f.frame_number);
             let vp = f.viewpoint.as_ref().ok_or_else(|| {
-                invalid(
-                    &frames_path,
-                    format!("{what}: no viewpoint; pick another sequence with `sequence`"),
-                )
+                invalid(&frames_path, format!("{what}: no viewpoint; pick another sequence with `sequence`"))
             })?;
-            let finite =
-                vp.r.iter()
-                    .flatten()
-                    .chain(&vp.t)
-                    .chain(&vp.focal_length)
-                    .chain(&vp.principal_point);
+            let finite = vp.r.iter().flatten().chain(&vp.t).chain(&vp.focal_length).chain(&vp.principal_point);
             if finite.clone().any(|v| !v.is_finite()) {
-                return Err(invalid(
-                    &frames_path,
-                    format!("{what}: viewpoint has NaN or inf"),
-                ));
+                return Err(invalid(&frames_path, format!("{what}: viewpoint has NaN or inf")));
             }
-            let k = intrinsics_from_ndc(vp, f.image.size)
-                .map_err(|m| invalid(&frames_path, format!("{what}: {m}")))?;
+            let k = intrinsics_from_ndc(vp, f.image.size).map_err(|m| invalid(&frames_path, format!("{what}: {m}")))?;
             let pose = pose_from_pytorch3d(&vp.r, vp.t)
                 .ok_or_else(|| invalid(&frames_path, format!("{what}: rotation R is singular")))?;
             let camera = checked_camera(&frames_path, &what, &pose, &k)?;
@@ -406,12 +350,7 @@ pub fn load_co3d(cfg: &Co3dConfig, root: &Path) -> Result<Scene, DatasetError> {
                 .and_then(|s| s.to_str())
                 .map(str::to_string)
                 .unwrap_or_else(|| format!("frame{:06}", f.frame_number));
-            Ok(View {
-                name,
-                camera,
-                image,
-                mask,
-            })
+            Ok(View { name, camera, image, mask })
         })
         .collect::<Result<_, DatasetError>>()?;
     let (train, test) = hold_out_views(root, views.len(), cfg.hold_out_every)?;

@@ -36,7 +36,7 @@ use crate::adapter::{hold_out_views, orbit_scene, register_dataset};
 use crate::image_files::find_with_stem;
 use crate::pose::{self, Pose};
 use crate::text::{invalid, number, read_bytes, read_text, Reader};
-use crate::views::{NO_AABB, check_aabb, checked_camera, extent_of, optional_mask, scene_name, Intrinsics};
+use crate::views::{check_aabb, checked_camera, extent_of, optional_mask, scene_name, Intrinsics, NO_AABB};
 
 /// Configuration of the `colmap` dataset (`[scene] kind = "colmap"`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -82,7 +82,11 @@ register_dataset!(
 );
 
 /// The extent this adapter chose where the config gives no `aabb`.
-fn derived_colmap(cfg: &ColmapConfig, _root: &Path, scene: &sos_core::scene::Scene) -> Vec<sos_core::derived::DerivedSetting> {
+fn derived_colmap(
+    cfg: &ColmapConfig,
+    _root: &Path,
+    scene: &sos_core::scene::Scene,
+) -> Vec<sos_core::derived::DerivedSetting> {
     match cfg.aabb {
         Some(_) => Vec::new(),
         None => vec![crate::views::extent_setting(scene, NO_AABB)],
@@ -146,10 +150,7 @@ pub fn parse_cameras_bin(path: &Path, bytes: &[u8]) -> Result<Vec<ColmapCamera>,
     if n > (r.remaining() / 24) as u64 {
         return Err(invalid(
             path,
-            format!(
-                "camera count {n} does not fit in the file ({} bytes); re-export the model",
-                bytes.len()
-            ),
+            format!("camera count {n} does not fit in the file ({} bytes); re-export the model", bytes.len()),
         ));
     }
     let mut cams = Vec::with_capacity(n as usize);
@@ -160,25 +161,11 @@ pub fn parse_cameras_bin(path: &Path, bytes: &[u8]) -> Result<Vec<ColmapCamera>,
         let model = model_index(path, model_id as i64, &what)?;
         let width = r.u64(&what)?;
         let height = r.u64(&what)?;
-        let params = (0..MODELS[model].1)
-            .map(|_| r.f64(&what))
-            .collect::<Result<Vec<_>, _>>()?;
-        cams.push(ColmapCamera {
-            id,
-            model,
-            width,
-            height,
-            params,
-        });
+        let params = (0..MODELS[model].1).map(|_| r.f64(&what)).collect::<Result<Vec<_>, _>>()?;
+        cams.push(ColmapCamera { id, model, width, height, params });
     }
     if r.remaining() != 0 {
-        return Err(invalid(
-            path,
-            format!(
-                "{} bytes left after the last camera; re-export the model",
-                r.remaining()
-            ),
-        ));
+        return Err(invalid(path, format!("{} bytes left after the last camera; re-export the model", r.remaining())));
     }
     Ok(cams)
 }
@@ -187,12 +174,7 @@ fn model_index(path: &Path, id: i64, what: &str) -> Result<usize, DatasetError> 
     usize::try_from(id)
         .ok()
         .filter(|&m| m < MODELS.len())
-        .ok_or_else(|| {
-            invalid(
-                path,
-                format!("{what}: unknown camera model id {id}; re-export the model"),
-            )
-        })
+        .ok_or_else(|| invalid(path, format!("{what}: unknown camera model id {id}; re-export the model")))
 }
 
 /// Parses `cameras.txt`.
@@ -206,54 +188,29 @@ pub fn parse_cameras_txt(path: &Path, text: &str) -> Result<Vec<ColmapCamera>, D
         let what = format!("line {}", l + 1);
         let t: Vec<&str> = line.split_whitespace().collect();
         if t.len() < 4 {
-            return Err(invalid(
-                path,
-                format!("{what}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[], got {line:?}"),
-            ));
+            return Err(invalid(path, format!("{what}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[], got {line:?}")));
         }
         let model = MODELS
             .iter()
             .position(|m| m.0 == t[1])
             .ok_or_else(|| invalid(path, format!("{what}: unknown camera model {:?}", t[1])))?;
         let int = |s: &str, name: &str| -> Result<i64, DatasetError> {
-            s.parse().map_err(|_| {
-                invalid(
-                    path,
-                    format!("{what}: {name} must be an integer, got {s:?}"),
-                )
-            })
+            s.parse().map_err(|_| invalid(path, format!("{what}: {name} must be an integer, got {s:?}")))
         };
         let id = int(t[0], "CAMERA_ID")?;
         let width = int(t[2], "WIDTH")?;
         let height = int(t[3], "HEIGHT")?;
         if width < 0 || height < 0 {
-            return Err(invalid(
-                path,
-                format!("{what}: negative image size {width}x{height}"),
-            ));
+            return Err(invalid(path, format!("{what}: negative image size {width}x{height}")));
         }
-        let params = t[4..]
-            .iter()
-            .map(|s| number(path, s, &what))
-            .collect::<Result<Vec<_>, _>>()?;
+        let params = t[4..].iter().map(|s| number(path, s, &what)).collect::<Result<Vec<_>, _>>()?;
         if params.len() != MODELS[model].1 {
             return Err(invalid(
                 path,
-                format!(
-                    "{what}: model {} takes {} parameters, found {}",
-                    t[1],
-                    MODELS[model].1,
-                    params.len()
-                ),
+                format!("{what}: model {} takes {} parameters, found {}", t[1], MODELS[model].1, params.len()),
             ));
         }
-        cams.push(ColmapCamera {
-            id,
-            model,
-            width: width as u64,
-            height: height as u64,
-            params,
-        });
+        cams.push(ColmapCamera { id, model, width: width as u64, height: height as u64, params });
     }
     Ok(cams)
 }
@@ -266,10 +223,7 @@ pub fn parse_images_bin(path: &Path, bytes: &[u8]) -> Result<Vec<ColmapImage>, D
     if n > (r.remaining() / 73) as u64 {
         return Err(invalid(
             path,
-            format!(
-                "image count {n} does not fit in the file ({} bytes); re-export the model",
-                bytes.len()
-            ),
+            format!("image count {n} does not fit in the file ({} bytes); re-export the model", bytes.len()),
         ));
     }
     let mut images = Vec::with_capacity(n as usize);
@@ -287,34 +241,14 @@ pub fn parse_images_bin(path: &Path, bytes: &[u8]) -> Result<Vec<ColmapImage>, D
         let camera_id = r.i32(&what)? as i64;
         let name = r.c_string(&format!("the name of {what}"))?;
         let points = r.u64(&what)?;
-        let bytes = points
-            .checked_mul(24)
-            .filter(|&b| b <= r.remaining() as u64)
-            .ok_or_else(|| {
-                invalid(
-                    path,
-                    format!(
-                        "{what}: {points} 2-D points do not fit in the file; re-export the model"
-                    ),
-                )
-            })?;
+        let bytes = points.checked_mul(24).filter(|&b| b <= r.remaining() as u64).ok_or_else(|| {
+            invalid(path, format!("{what}: {points} 2-D points do not fit in the file; re-export the model"))
+        })?;
         r.skip(bytes as usize, &what)?;
-        images.push(ColmapImage {
-            id,
-            qvec,
-            tvec,
-            camera_id,
-            name,
-        });
+        images.push(ColmapImage { id, qvec, tvec, camera_id, name });
     }
     if r.remaining() != 0 {
-        return Err(invalid(
-            path,
-            format!(
-                "{} bytes left after the last image; re-export the model",
-                r.remaining()
-            ),
-        ));
+        return Err(invalid(path, format!("{} bytes left after the last image; re-export the model", r.remaining())));
     }
     Ok(images)
 }
@@ -337,17 +271,9 @@ pub fn parse_images_txt(path: &Path, text: &str) -> Result<Vec<ColmapImage>, Dat
             ));
         }
         let int = |s: &str, name: &str| -> Result<i64, DatasetError> {
-            s.parse().map_err(|_| {
-                invalid(
-                    path,
-                    format!("{what}: {name} must be an integer, got {s:?}"),
-                )
-            })
+            s.parse().map_err(|_| invalid(path, format!("{what}: {name} must be an integer, got {s:?}")))
         };
-        let v = t[1..8]
-            .iter()
-            .map(|s| number(path, s, &what))
-            .collect::<Result<Vec<_>, _>>()?;
+        let v = t[1..8].iter().map(|s| number(path, s, &what)).collect::<Result<Vec<_>, _>>()?;
         images.push(ColmapImage {
             id: int(t[0], "IMAGE_ID")?,
             qvec: [v[0], v[1], v[2], v[3]],
@@ -362,9 +288,7 @@ pub fn parse_images_txt(path: &Path, text: &str) -> Result<Vec<ColmapImage>, Dat
 }
 
 /// Finds the model folder and reads cameras and images from it.
-pub fn read_model(
-    dir: &Path,
-) -> Result<(Vec<ColmapCamera>, Vec<ColmapImage>, PathBuf), DatasetError> {
+pub fn read_model(dir: &Path) -> Result<(Vec<ColmapCamera>, Vec<ColmapImage>, PathBuf), DatasetError> {
     let hint = "a COLMAP model needs cameras and images in the same format (.bin or .txt)";
     if dir.join("cameras.bin").is_file() {
         let cp = dir.join("cameras.bin");
@@ -395,11 +319,8 @@ fn intrinsics(cam: &ColmapCamera, ignore_distortion: bool) -> Result<Intrinsics,
     if let Some(v) = p.iter().find(|v| !v.is_finite()) {
         return Err(format!("camera {}: parameter {v} is not finite", cam.id));
     }
-    let (fx, fy, cx, cy, rest) = if single_f {
-        (p[0], p[0], p[1], p[2], &p[3..])
-    } else {
-        (p[0], p[1], p[2], p[3], &p[4..])
-    };
+    let (fx, fy, cx, cy, rest) =
+        if single_f { (p[0], p[0], p[1], p[2], &p[3..]) } else { (p[0], p[1], p[2], p[3], &p[4..]) };
     if rest.iter().any(|&k| k != 0.0) && !ignore_distortion {
         return Err(format!(
             "camera {}: model {name} has non-zero distortion {rest:?}; undistort the images with \
@@ -410,19 +331,9 @@ fn intrinsics(cam: &ColmapCamera, ignore_distortion: bool) -> Result<Intrinsics,
     }
     let size = |v: u64| u32::try_from(v).ok().filter(|&s| s > 0);
     let (Some(width), Some(height)) = (size(cam.width), size(cam.height)) else {
-        return Err(format!(
-            "camera {}: image size {}x{} is zero or too large",
-            cam.id, cam.width, cam.height
-        ));
+        return Err(format!("camera {}: image size {}x{} is zero or too large", cam.id, cam.width, cam.height));
     };
-    Ok(Intrinsics {
-        width,
-        height,
-        fx,
-        fy,
-        cx,
-        cy,
-    })
+    Ok(Intrinsics { width, height, fx, fy, cx, cy })
 }
 
 fn find_model_dir(cfg: &ColmapConfig, root: &Path) -> Result<PathBuf, DatasetError> {
@@ -434,24 +345,18 @@ fn find_model_dir(cfg: &ColmapConfig, root: &Path) -> Result<PathBuf, DatasetErr
         } else {
             Err(DatasetError::Missing {
                 path: d.join("cameras.bin"),
-                hint: "config key `sparse` must name a folder with cameras.bin or cameras.txt"
-                    .into(),
+                hint: "config key `sparse` must name a folder with cameras.bin or cameras.txt".into(),
             })
         };
     }
-    [
-        root.join("sparse/0"),
-        root.join("sparse"),
-        root.to_path_buf(),
-    ]
-    .into_iter()
-    .find(|d| has_model(d))
-    .ok_or_else(|| DatasetError::Missing {
-        path: root.join("sparse/0/cameras.bin"),
-        hint: "no COLMAP model (cameras.bin or cameras.txt) in sparse/0/, sparse/ or the scene \
+    [root.join("sparse/0"), root.join("sparse"), root.to_path_buf()].into_iter().find(|d| has_model(d)).ok_or_else(
+        || DatasetError::Missing {
+            path: root.join("sparse/0/cameras.bin"),
+            hint: "no COLMAP model (cameras.bin or cameras.txt) in sparse/0/, sparse/ or the scene \
                    folder; run COLMAP's mapper or set `sparse`"
-            .into(),
-    })
+                .into(),
+        },
+    )
 }
 
 /// The mask of image `name`: `masks/<name minus extension>.<ext>` or `masks/<name>.png`.
@@ -460,8 +365,7 @@ fn mask_path(root: &Path, name: &str) -> Option<PathBuf> {
     let rel = Path::new(name);
     let dir = masks.join(rel.parent().unwrap_or(Path::new("")));
     let stem = rel.file_stem().and_then(|s| s.to_str()).unwrap_or("");
-    find_with_stem(&dir, stem)
-        .or_else(|| Some(masks.join(format!("{name}.png"))).filter(|p| p.is_file()))
+    find_with_stem(&dir, stem).or_else(|| Some(masks.join(format!("{name}.png"))).filter(|p| p.is_file()))
 }
 
 /// Loads a COLMAP scene from folder `root` (the config's `path` already resolved).
@@ -475,41 +379,30 @@ pub fn load_colmap(cfg: &ColmapConfig, root: &Path) -> Result<Scene, DatasetErro
     }
     let model_dir = find_model_dir(cfg, root)?;
     let (cams, mut images, images_file) = read_model(&model_dir)?;
-    let cam_file =
-        images_file.with_file_name(if images_file.extension().is_some_and(|e| e == "bin") {
-            "cameras.bin"
-        } else {
-            "cameras.txt"
-        });
+    let cam_file = images_file.with_file_name(if images_file.extension().is_some_and(|e| e == "bin") {
+        "cameras.bin"
+    } else {
+        "cameras.txt"
+    });
     if images.is_empty() {
-        return Err(invalid(
-            &images_file,
-            "the model registers no image; re-run COLMAP's mapper",
-        ));
+        return Err(invalid(&images_file, "the model registers no image; re-run COLMAP's mapper"));
     }
     let mut by_id: HashMap<i64, Intrinsics> = HashMap::new();
     for c in &cams {
         let k = intrinsics(c, cfg.ignore_distortion).map_err(|m| invalid(&cam_file, m))?;
         if by_id.insert(c.id, k).is_some() {
-            return Err(invalid(
-                &cam_file,
-                format!("camera id {} appears twice", c.id),
-            ));
+            return Err(invalid(&cam_file, format!("camera id {} appears twice", c.id)));
         }
     }
     images.sort_by(|a, b| a.name.cmp(&b.name));
     if let Some(w) = images.windows(2).find(|w| w[0].name == w[1].name) {
-        return Err(invalid(
-            &images_file,
-            format!("image {:?} is registered twice", w[0].name),
-        ));
+        return Err(invalid(&images_file, format!("image {:?} is registered twice", w[0].name)));
     }
     let image_dir = root.join(&cfg.images);
     if !image_dir.is_dir() {
         return Err(DatasetError::Missing {
             path: image_dir,
-            hint: "the folder of the images the model registers; set `images` if it is elsewhere"
-                .into(),
+            hint: "the folder of the images the model registers; set `images` if it is elsewhere".into(),
         });
     }
     let views: Vec<View> = images
@@ -517,27 +410,14 @@ pub fn load_colmap(cfg: &ColmapConfig, root: &Path) -> Result<Scene, DatasetErro
         .map(|im| {
             let what = format!("image {} ({})", im.id, im.name);
             let k = by_id.get(&im.camera_id).ok_or_else(|| {
-                invalid(
-                    &images_file,
-                    format!(
-                        "{what}: camera id {} is not in {}",
-                        im.camera_id,
-                        cam_file.display()
-                    ),
-                )
+                invalid(&images_file, format!("{what}: camera id {} is not in {}", im.camera_id, cam_file.display()))
             })?;
             if im.qvec.iter().chain(&im.tvec).any(|v| !v.is_finite()) {
-                return Err(invalid(
-                    &images_file,
-                    format!("{what}: pose has NaN or inf; fix or drop this image"),
-                ));
+                return Err(invalid(&images_file, format!("{what}: pose has NaN or inf; fix or drop this image")));
             }
             let qn: f64 = im.qvec.iter().map(|v| v * v).sum::<f64>().sqrt();
             if qn.is_nan() || qn <= 1e-6 {
-                return Err(invalid(
-                    &images_file,
-                    format!("{what}: zero quaternion; fix or drop this image"),
-                ));
+                return Err(invalid(&images_file, format!("{what}: zero quaternion; fix or drop this image")));
             }
             let r = pose::rotation_from_quaternion(im.qvec);
             let pose: Pose = pose::from_world_to_camera(&r, im.tvec)
@@ -546,10 +426,7 @@ pub fn load_colmap(cfg: &ColmapConfig, root: &Path) -> Result<Scene, DatasetErro
             if !file.is_file() {
                 return Err(DatasetError::Missing {
                     path: file,
-                    hint: format!(
-                        "{what} is registered in {} but its file is absent",
-                        images_file.display()
-                    ),
+                    hint: format!("{what} is registered in {} but its file is absent", images_file.display()),
                 });
             }
             let image = sos_core::image::RgbImage::load(&file)?;
@@ -571,22 +448,10 @@ pub fn load_colmap(cfg: &ColmapConfig, root: &Path) -> Result<Scene, DatasetErro
                 }
                 camera = camera.resized(w, h);
             }
-            let mask = optional_mask(
-                mask_path(root, &im.name).as_deref(),
-                image.width,
-                image.height,
-            )?;
+            let mask = optional_mask(mask_path(root, &im.name).as_deref(), image.width, image.height)?;
             let rel = Path::new(&im.name);
-            let name = rel
-                .with_extension("")
-                .to_string_lossy()
-                .replace(['/', '\\'], "_");
-            Ok(View {
-                name,
-                camera,
-                image,
-                mask,
-            })
+            let name = rel.with_extension("").to_string_lossy().replace(['/', '\\'], "_");
+            Ok(View { name, camera, image, mask })
         })
         .collect::<Result<_, DatasetError>>()?;
     let (train, test) = hold_out_views(root, views.len(), cfg.hold_out_every)?;

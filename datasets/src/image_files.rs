@@ -22,10 +22,7 @@ pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>, DatasetError> {
     let mut files: Vec<PathBuf> = entries
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| {
-            p.is_file()
-                && p.extension()
-                    .and_then(|e| e.to_str())
-                    .is_some_and(|e| IMAGE_EXTENSIONS.contains(&e))
+            p.is_file() && p.extension().and_then(|e| e.to_str()).is_some_and(|e| IMAGE_EXTENSIONS.contains(&e))
         })
         .collect();
     files.sort_by(|a, b| a.file_name().cmp(&b.file_name()));
@@ -34,10 +31,7 @@ pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>, DatasetError> {
 
 /// `dir/stem.<ext>` for the first accepted extension that exists.
 pub fn find_with_stem(dir: &Path, stem: &str) -> Option<PathBuf> {
-    IMAGE_EXTENSIONS
-        .iter()
-        .map(|ext| dir.join(format!("{stem}.{ext}")))
-        .find(|p| p.is_file())
+    IMAGE_EXTENSIONS.iter().map(|ext| dir.join(format!("{stem}.{ext}"))).find(|p| p.is_file())
 }
 
 /// `dir/<name>` with an image extension: the name itself when it already names a file, else
@@ -47,10 +41,7 @@ pub fn find_image(dir: &Path, name: &str) -> Option<PathBuf> {
     if direct.is_file() {
         return Some(direct);
     }
-    IMAGE_EXTENSIONS
-        .iter()
-        .map(|ext| dir.join(format!("{name}.{ext}")))
-        .find(|p| p.is_file())
+    IMAGE_EXTENSIONS.iter().map(|ext| dir.join(format!("{name}.{ext}"))).find(|p| p.is_file())
 }
 
 /// Checks that every `.txt` file among `entries` (a listing of per-image camera or pose files)

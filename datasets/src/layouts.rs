@@ -118,46 +118,18 @@ impl Format {
                 let cfg = BlenderConfig { path, aabb, near: Some(0.0), ..Default::default() };
                 load_blender(&cfg, &root)
             }
-            Format::ColmapBin | Format::ColmapTxt => load_colmap(
-                &ColmapConfig {
-                    path,
-                    aabb,
-                    ..Default::default()
-                },
-                &root,
-            ),
-            Format::BlendedMvs => load_blendedmvs(
-                &BlendedMvsConfig {
-                    path,
-                    layout: Layout::Original,
-                    aabb,
-                    ..Default::default()
-                },
-                &root,
-            ),
-            Format::Nsvf => load_blendedmvs(
-                &BlendedMvsConfig {
-                    path,
-                    layout: Layout::Nsvf,
-                    aabb,
-                    ..Default::default()
-                },
-                &root,
-            ),
-            Format::Co3d => load_co3d(
-                &Co3dConfig {
-                    path,
-                    aabb,
-                    ..Default::default()
-                },
-                &root,
-            ),
+            Format::ColmapBin | Format::ColmapTxt => {
+                load_colmap(&ColmapConfig { path, aabb, ..Default::default() }, &root)
+            }
+            Format::BlendedMvs => {
+                load_blendedmvs(&BlendedMvsConfig { path, layout: Layout::Original, aabb, ..Default::default() }, &root)
+            }
+            Format::Nsvf => {
+                load_blendedmvs(&BlendedMvsConfig { path, layout: Layout::Nsvf, aabb, ..Default::default() }, &root)
+            }
+            Format::Co3d => load_co3d(&Co3dConfig { path, aabb, ..Default::default() }, &root),
             Format::TanksTemples => load_tanks_temples(
-                &TanksTemplesConfig {
-                    path,
-                    normalize: Normalize::Never,
-                    ..Default::default()
-                },
+                &TanksTemplesConfig { path, normalize: Normalize::Never, ..Default::default() },
                 &root,
             ),
         }

@@ -39,8 +39,7 @@ pub use blender::{load_blender, BlenderConfig};
 pub use co3d::{load_co3d, Co3dConfig};
 pub use colmap::{load_colmap, ColmapConfig};
 pub use export::{
-    write_blendedmvs, write_blender, write_co3d, write_colmap, write_llff, write_nsvf,
-    write_tanks_temples,
+    write_blendedmvs, write_blender, write_co3d, write_colmap, write_llff, write_nsvf, write_tanks_temples,
 };
 pub use layouts::Format;
 pub use llff::{load_llff, LlffConfig};

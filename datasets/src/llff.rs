@@ -99,19 +99,14 @@ fn parse_rows(path: &Path, shape: &[usize], data: &[f64]) -> Result<Vec<PoseRow>
     if shape.len() != 2 || shape[1] != 17 || shape[0] == 0 {
         return Err(invalid(
             path,
-            format!(
-                "expected shape (N, 17) with N ≥ 1 (3x5 pose + near, far per image), got {shape:?}"
-            ),
+            format!("expected shape (N, 17) with N ≥ 1 (3x5 pose + near, far per image), got {shape:?}"),
         ));
     }
     data.chunks_exact(17)
         .enumerate()
         .map(|(i, row)| {
             if let Some(k) = row.iter().position(|v| !v.is_finite()) {
-                return Err(invalid(
-                    path,
-                    format!("row {i} value {k} is not finite (NaN or inf)"),
-                ));
+                return Err(invalid(path, format!("row {i} value {k} is not finite (NaN or inf)")));
             }
             // The 15 values reshape (row-major) to 3x5 [R | t | hwf], R in (down, right, back).
             let m = |r: usize, c: usize| row[5 * r + c];
@@ -122,25 +117,13 @@ fn parse_rows(path: &Path, shape: &[usize], data: &[f64]) -> Result<Vec<PoseRow>
             let rot = CameraConvention::Llff.to_opengl(llff);
             let mut pose = [[0.0; 4]; 3];
             for r in 0..3 {
-                pose[r] = [
-                    rot[r][0] as f64,
-                    rot[r][1] as f64,
-                    rot[r][2] as f64,
-                    m(r, 3),
-                ];
+                pose[r] = [rot[r][0] as f64, rot[r][1] as f64, rot[r][2] as f64, m(r, 3)];
             }
             let bounds = [row[15], row[16]];
             if !(bounds[0] > 0.0 && bounds[1] >= bounds[0]) {
-                return Err(invalid(
-                    path,
-                    format!("row {i}: bounds must satisfy 0 < near ≤ far, got {bounds:?}"),
-                ));
+                return Err(invalid(path, format!("row {i}: bounds must satisfy 0 < near ≤ far, got {bounds:?}")));
             }
-            Ok(PoseRow {
-                pose,
-                hwf: [m(0, 4), m(1, 4), m(2, 4)],
-                bounds,
-            })
+            Ok(PoseRow { pose, hwf: [m(0, 4), m(1, 4), m(2, 4)], bounds })
         })
         .collect()
 }
@@ -197,12 +180,7 @@ fn image_source(cfg: &LlffConfig, root: &Path, hwf: [f64; 3]) -> Result<ImageSou
             }
             let factor = w_full / width as f64;
             let height = ((h_full / factor) as usize).max(1);
-            (
-                root.join(format!("images_{width}x{height}")),
-                width as usize,
-                height,
-                factor,
-            )
+            (root.join(format!("images_{width}x{height}")), width as usize, height, factor)
         }
         None => {
             let factor = cfg.factor.unwrap_or_else(|| working_factor(root, w_full));
@@ -211,33 +189,19 @@ fn image_source(cfg: &LlffConfig, root: &Path, hwf: [f64; 3]) -> Result<ImageSou
             }
             let f = factor as f64;
             let dir = if factor == 1 { full.clone() } else { root.join(format!("images_{factor}")) };
-            let (w, h) = (
-                ((w_full / f).round() as usize).max(1),
-                ((h_full / f).round() as usize).max(1),
-            );
+            let (w, h) = (((w_full / f).round() as usize).max(1), ((h_full / f).round() as usize).max(1));
             (dir, w, h, f)
         }
     };
     if dir.is_dir() {
-        return Ok(ImageSource {
-            dir,
-            resize_to: None,
-            factor,
-        });
+        return Ok(ImageSource { dir, resize_to: None, factor });
     }
     if full.is_dir() {
-        return Ok(ImageSource {
-            dir: full,
-            resize_to: Some((w, h)),
-            factor,
-        });
+        return Ok(ImageSource { dir: full, resize_to: Some((w, h)), factor });
     }
     Err(DatasetError::Missing {
         path: dir,
-        hint: format!(
-            "put the downscaled images there, or the full-resolution ones in {}",
-            full.display()
-        ),
+        hint: format!("put the downscaled images there, or the full-resolution ones in {}", full.display()),
     })
 }
 
@@ -261,24 +225,14 @@ pub struct LlffGeometry {
 pub fn read_llff_geometry(cfg: &LlffConfig, npy_path: &Path) -> Result<LlffGeometry, DatasetError> {
     let arr = read_npy(npy_path)?;
     let rows = parse_rows(npy_path, &arr.shape, &arr.data)?;
-    let min_bound = rows
-        .iter()
-        .map(|r| r.bounds[0])
-        .fold(f64::INFINITY, f64::min);
+    let min_bound = rows.iter().map(|r| r.bounds[0]).fold(f64::INFINITY, f64::min);
     let max_bound = rows.iter().map(|r| r.bounds[1]).fold(0.0, f64::max);
-    let sc = if cfg.bd_factor > 0.0 {
-        1.0 / (cfg.bd_factor * min_bound)
-    } else {
-        1.0
-    };
+    let sc = if cfg.bd_factor > 0.0 { 1.0 / (cfg.bd_factor * min_bound) } else { 1.0 };
     let mut poses: Vec<Pose> = rows.iter().map(|r| r.pose).collect();
     for (i, p) in poses.iter().enumerate() {
         let r = [0, 1, 2].map(|k| [p[k][0], p[k][1], p[k][2]]);
         if let Some(problem) = pose::rotation_problem(&r) {
-            return Err(invalid(
-                npy_path,
-                format!("row {i}: {problem}; fix or drop this camera"),
-            ));
+            return Err(invalid(npy_path, format!("row {i}: {problem}; fix or drop this camera")));
         }
     }
     for p in &mut poses {
@@ -301,12 +255,7 @@ pub fn read_llff_geometry(cfg: &LlffConfig, npy_path: &Path) -> Result<LlffGeome
         bounds = bounds.map(|b| b * s.scale);
         sphere_path = Some(s.path);
     }
-    Ok(LlffGeometry {
-        poses,
-        hwf: rows[0].hwf,
-        bounds,
-        sphere_path,
-    })
+    Ok(LlffGeometry { poses, hwf: rows[0].hwf, bounds, sphere_path })
 }
 
 /// With `spherify` unset, captures whose mean unit viewing direction is shorter than this are
@@ -357,8 +306,7 @@ pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
     if !root.is_dir() {
         return Err(DatasetError::Missing {
             path: root.to_path_buf(),
-            hint: "expected an LLFF scene folder with poses_bounds.npy and images_N/; check `path`"
-                .into(),
+            hint: "expected an LLFF scene folder with poses_bounds.npy and images_N/; check `path`".into(),
         });
     }
     let npy_path = root.join("poses_bounds.npy");
@@ -421,28 +369,14 @@ pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
     let mut views = Vec::with_capacity(files.len());
     for (i, ((file, image), p)) in files.iter().zip(images).zip(poses).enumerate() {
         let camera = pose::to_camera(p, width as u32, height as u32, focal);
-        camera.validate().map_err(|e| {
-            invalid(
-                &npy_path,
-                format!("pose of row {i} ({}): {e}", file.display()),
-            )
-        })?;
+        camera.validate().map_err(|e| invalid(&npy_path, format!("pose of row {i} ({}): {e}", file.display())))?;
         let mask = masks.load(stem(file), width, height)?;
-        views.push(View {
-            name: stem(file).to_string(),
-            camera,
-            image,
-            mask,
-        });
+        views.push(View { name: stem(file).to_string(), camera, image, mask });
     }
     masks.check_any_used(&views)?;
     let (train, test) = hold_out_views(root, views.len(), cfg.hold_out_every)?;
     let to_cam = |p: &Pose| pose::to_camera(p, width as u32, height as u32, focal);
-    let name = root
-        .file_name()
-        .and_then(|n| n.to_str())
-        .unwrap_or("llff")
-        .to_string();
+    let name = root.file_name().and_then(|n| n.to_str()).unwrap_or("llff").to_string();
     if let Some(path) = &geo.sphere_path {
         // Spherified 360° captures: cameras around the origin at RMS distance 1.
         return Ok(Scene {
@@ -450,18 +384,13 @@ pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
             views,
             train,
             test,
-            extent: SceneExtent::Unbounded {
-                center: [0.0; 3],
-                radius: 1.0,
-            },
+            extent: SceneExtent::Unbounded { center: [0.0; 3], radius: 1.0 },
             near: near as f32,
             render_path: path.iter().map(to_cam).collect(),
         });
     }
-    let render_path = pose::llff_spiral(poses, geo.bounds[0], geo.bounds[1], cfg.render_path_views)
-        .iter()
-        .map(to_cam)
-        .collect();
+    let render_path =
+        pose::llff_spiral(poses, geo.bounds[0], geo.bounds[1], cfg.render_path_views).iter().map(to_cam).collect();
     Ok(Scene {
         name,
         views,
@@ -486,12 +415,7 @@ pub(crate) struct MaskDir(Option<PathBuf>);
 impl MaskDir {
     /// Looks for `segments/`, then `masks/`, in `root`.
     pub(crate) fn find(root: &Path) -> Self {
-        MaskDir(
-            ["segments", "masks"]
-                .iter()
-                .map(|d| root.join(d))
-                .find(|d| d.is_dir()),
-        )
+        MaskDir(["segments", "masks"].iter().map(|d| root.join(d)).find(|d| d.is_dir()))
     }
 
     /// The mask of the image with stem `stem`, if the folder has one.
@@ -524,9 +448,9 @@ impl MaskDir {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use sos_core::plugin::dataset::DatasetConfig;
     use crate::export::write_llff;
     use crate::synthetic::{generate, Rig, SyntheticConfig};
+    use sos_core::plugin::dataset::DatasetConfig;
 
     fn temp_dir(name: &str) -> PathBuf {
         let dir = std::env::temp_dir().join(format!("sos-llff-{}-{name}", std::process::id()));
@@ -536,37 +460,18 @@ mod tests {
     }
 
     fn small(rig: Rig) -> Scene {
-        generate(&SyntheticConfig {
-            rig,
-            width: 96,
-            height: 72,
-            views: 12,
-            ..Default::default()
-        })
+        generate(&SyntheticConfig { rig, width: 96, height: 72, views: 12, ..Default::default() })
     }
 
     fn cfg(path: &Path) -> LlffConfig {
-        LlffConfig {
-            path: path.to_path_buf(),
-            ..Default::default()
-        }
+        LlffConfig { path: path.to_path_buf(), ..Default::default() }
     }
 
     fn assert_images_match(a: &Scene, b: &Scene) {
         for (x, y) in a.views.iter().zip(&b.views) {
             assert_eq!(x.name, y.name);
-            let err = x
-                .image
-                .data
-                .iter()
-                .zip(&y.image.data)
-                .map(|(p, q)| (p - q).abs())
-                .fold(0.0, f32::max);
-            assert!(
-                err <= 0.5 / 255.0 + 1e-5,
-                "view {}: colour differs by {err}",
-                x.name
-            );
+            let err = x.image.data.iter().zip(&y.image.data).map(|(p, q)| (p - q).abs()).fold(0.0, f32::max);
+            assert!(err <= 0.5 / 255.0 + 1e-5, "view {}: colour differs by {err}", x.name);
             assert_eq!(x.mask, y.mask, "view {}", x.name);
         }
     }
@@ -589,11 +494,7 @@ mod tests {
                 assert!((x - y).abs() < 1e-4, "view {}: {want:?} vs {got:?}", o.name);
             }
         }
-        let loaded_poses: Vec<Pose> = loaded
-            .views
-            .iter()
-            .map(|v| pose::from_camera(&v.camera))
-            .collect();
+        let loaded_poses: Vec<Pose> = loaded.views.iter().map(|v| pose::from_camera(&v.camera)).collect();
         let avg = pose::poses_avg(&loaded_poses);
         for (x, y) in avg.iter().flatten().zip(pose::IDENTITY.iter().flatten()) {
             assert!((x - y).abs() < 1e-5, "average pose {avg:?}");
@@ -610,41 +511,20 @@ mod tests {
         assert_eq!(loaded.views.len(), 12);
         assert_eq!((loaded.train.len(), loaded.test.clone()), (10, vec![0, 8]));
         assert_images_match(&scene, &loaded);
-        let SceneExtent::ForwardFacing { near, far, .. } = scene.extent else {
-            unreachable!()
-        };
+        let SceneExtent::ForwardFacing { near, far, .. } = scene.extent else { unreachable!() };
         let sc = 1.0 / (0.75 * near as f64);
         assert_similar_poses(&scene, &loaded, sc);
         // The generator's frame is already recentred, so only the scale changes.
-        let (o, l) = (
-            scene.views[3].camera.origin(),
-            loaded.views[3].camera.origin(),
-        );
-        assert!(
-            (0..3).all(|k| (l[k] as f64 - sc * o[k] as f64).abs() < 1e-4),
-            "{o:?} {l:?}"
-        );
-        let SceneExtent::ForwardFacing {
-            near: n2,
-            far: f2,
-            focal,
-            width,
-            height,
-        } = loaded.extent
-        else {
+        let (o, l) = (scene.views[3].camera.origin(), loaded.views[3].camera.origin());
+        assert!((0..3).all(|k| (l[k] as f64 - sc * o[k] as f64).abs() < 1e-4), "{o:?} {l:?}");
+        let SceneExtent::ForwardFacing { near: n2, far: f2, focal, width, height } = loaded.extent else {
             panic!("llff extent must be forward-facing")
         };
-        assert!(
-            (n2 - 1.2).abs() < 1e-4 && (f2 as f64 - far as f64 * sc).abs() < 1e-3,
-            "{n2} {f2}"
-        );
+        assert!((n2 - 1.2).abs() < 1e-4 && (f2 as f64 - far as f64 * sc).abs() < 1e-3, "{n2} {f2}");
         assert!((focal - scene.views[0].camera.fx).abs() < 1e-3);
         assert_eq!((width, height), (96.0, 72.0));
         assert_eq!(loaded.render_path.len(), 120);
-        loaded
-            .render_path
-            .iter()
-            .for_each(|c| c.validate().unwrap());
+        loaded.render_path.iter().for_each(|c| c.validate().unwrap());
         std::fs::remove_dir_all(dir).ok();
     }
 
@@ -654,44 +534,20 @@ mod tests {
         let dir = temp_dir("oc");
         write_llff(&scene, &dir, 4).unwrap();
         let npy = read_npy(&dir.join("poses_bounds.npy")).unwrap();
-        let min_bound = npy
-            .data
-            .chunks(17)
-            .map(|r| r[15])
-            .fold(f64::INFINITY, f64::min);
+        let min_bound = npy.data.chunks(17).map(|r| r[15]).fold(f64::INFINITY, f64::min);
         // Recentring and scaling alone (an object-centric capture would be spherified).
-        let loaded = load_llff(
-            &LlffConfig {
-                factor: Some(4),
-                spherify: Some(false),
-                ..cfg(&dir)
-            },
-            &dir,
-        )
-        .unwrap();
+        let loaded = load_llff(&LlffConfig { factor: Some(4), spherify: Some(false), ..cfg(&dir) }, &dir).unwrap();
         loaded.validate().unwrap();
         assert_images_match(&scene, &loaded);
         assert_similar_poses(&scene, &loaded, 1.0 / (0.75 * min_bound));
         // Without recentring and scaling the poses come back unchanged.
         let raw = load_llff(
-            &LlffConfig {
-                factor: Some(4),
-                recenter: false,
-                bd_factor: 0.0,
-                spherify: Some(false),
-                ..cfg(&dir)
-            },
+            &LlffConfig { factor: Some(4), recenter: false, bd_factor: 0.0, spherify: Some(false), ..cfg(&dir) },
             &dir,
         )
         .unwrap();
         for (a, b) in scene.views.iter().zip(&raw.views) {
-            for (x, y) in a
-                .camera
-                .cam_to_world
-                .iter()
-                .flatten()
-                .zip(b.camera.cam_to_world.iter().flatten())
-            {
+            for (x, y) in a.camera.cam_to_world.iter().flatten().zip(b.camera.cam_to_world.iter().flatten()) {
                 assert!((x - y).abs() < 1e-5);
             }
         }
@@ -704,53 +560,20 @@ mod tests {
         let dir = temp_dir("full");
         write_llff(&scene, &dir, 1).unwrap();
         // images_2 is missing: images/ is box-filtered to half size, but masks/ is full size.
-        let err = load_llff(
-            &LlffConfig {
-                factor: Some(2),
-                ..cfg(&dir)
-            },
-            &dir,
-        )
-        .unwrap_err()
-        .to_string();
-        assert!(
-            err.contains("masks") && err.contains("resize") && err.contains("48x36"),
-            "{err}"
-        );
+        let err = load_llff(&LlffConfig { factor: Some(2), ..cfg(&dir) }, &dir).unwrap_err().to_string();
+        assert!(err.contains("masks") && err.contains("resize") && err.contains("48x36"), "{err}");
         std::fs::remove_dir_all(dir.join("masks")).unwrap();
-        let half = load_llff(
-            &LlffConfig {
-                factor: Some(2),
-                ..cfg(&dir)
-            },
-            &dir,
-        )
-        .unwrap();
+        let half = load_llff(&LlffConfig { factor: Some(2), ..cfg(&dir) }, &dir).unwrap();
         half.validate().unwrap();
         let v = &half.views[5];
         assert_eq!((v.image.width, v.image.height), (48, 36));
         assert!((v.camera.fx - scene.views[5].camera.fx / 2.0).abs() < 1e-3);
         let expect = scene.views[5].image.resized(48, 36);
-        let err = expect
-            .data
-            .iter()
-            .zip(&v.image.data)
-            .map(|(p, q)| (p - q).abs())
-            .fold(0.0, f32::max);
+        let err = expect.data.iter().zip(&v.image.data).map(|(p, q)| (p - q).abs()).fold(0.0, f32::max);
         assert!(err < 2.0 / 255.0, "{err}");
         // The `width` option picks the same size.
-        let w = load_llff(
-            &LlffConfig {
-                width: Some(48),
-                ..cfg(&dir)
-            },
-            &dir,
-        )
-        .unwrap();
-        assert_eq!(
-            (w.views[0].camera.width, w.views[0].camera.height),
-            (48, 36)
-        );
+        let w = load_llff(&LlffConfig { width: Some(48), ..cfg(&dir) }, &dir).unwrap();
+        assert_eq!((w.views[0].camera.width, w.views[0].camera.height), (48, 36));
         assert!((w.views[0].camera.fx - v.camera.fx).abs() < 1e-3);
         std::fs::remove_dir_all(dir).ok();
     }
@@ -766,67 +589,40 @@ mod tests {
 
         std::fs::write(&npy_path, &good[..good.len() - 100]).unwrap();
         let err = open(&cfg(&dir));
-        assert!(
-            err.contains("poses_bounds.npy") && err.contains("truncated"),
-            "{err}"
-        );
+        assert!(err.contains("poses_bounds.npy") && err.contains("truncated"), "{err}");
 
         let mut rows = read_npy_from(&good);
         rows[3 * 17 + 5] = f64::NAN;
         crate::npy::write_npy(&npy_path, &[12, 17], &rows).unwrap();
         let err = open(&cfg(&dir));
-        assert!(
-            err.contains("poses_bounds.npy") && err.contains("row 3"),
-            "{err}"
-        );
+        assert!(err.contains("poses_bounds.npy") && err.contains("row 3"), "{err}");
 
         let mut rows = read_npy_from(&good);
         rows[2 * 17 + 1] *= 3.0; // scales the right axis: not orthonormal
         crate::npy::write_npy(&npy_path, &[12, 17], &rows).unwrap();
         let err = open(&cfg(&dir));
-        assert!(
-            err.contains("poses_bounds.npy") && err.contains("orthonormal"),
-            "{err}"
-        );
+        assert!(err.contains("poses_bounds.npy") && err.contains("orthonormal"), "{err}");
 
         let rows = read_npy_from(&good);
         crate::npy::write_npy(&npy_path, &[11, 17], &rows[..11 * 17]).unwrap();
         let err = open(&cfg(&dir));
-        assert!(
-            err.contains("images_8") && err.contains("12 images") && err.contains("11 poses"),
-            "{err}"
-        );
+        assert!(err.contains("images_8") && err.contains("12 images") && err.contains("11 poses"), "{err}");
         std::fs::write(&npy_path, &good).unwrap();
 
-        let err = open(&LlffConfig {
-            factor: Some(3),
-            ..cfg(&dir)
-        });
+        let err = open(&LlffConfig { factor: Some(3), ..cfg(&dir) });
         assert!(err.contains("images_3") && err.contains("missing"), "{err}");
 
         std::fs::write(dir.join("images_8/view_004.png"), b"not a png").unwrap();
         let err = open(&cfg(&dir));
         assert!(err.contains("view_004.png"), "{err}");
 
-        scene.views[4]
-            .image
-            .resized(48, 36)
-            .save_png(&dir.join("images_8/view_004.png"))
-            .unwrap();
+        scene.views[4].image.resized(48, 36).save_png(&dir.join("images_8/view_004.png")).unwrap();
         let err = open(&cfg(&dir));
-        assert!(
-            err.contains("view_004.png") && err.contains("one size"),
-            "{err}"
-        );
+        assert!(err.contains("view_004.png") && err.contains("one size"), "{err}");
 
-        let err = load_llff(&cfg(&dir), &dir.join("nowhere"))
-            .unwrap_err()
-            .to_string();
+        let err = load_llff(&cfg(&dir), &dir.join("nowhere")).unwrap_err().to_string();
         assert!(err.contains("nowhere") && err.contains("missing"), "{err}");
-        let err = open(&LlffConfig {
-            spherify: Some(true),
-            ..cfg(&dir)
-        });
+        let err = open(&LlffConfig { spherify: Some(true), ..cfg(&dir) });
         assert!(err.contains("spherify"), "{err}");
         std::fs::remove_dir_all(dir).ok();
     }
@@ -860,12 +656,8 @@ mod tests {
 
     #[test]
     fn config_from_toml() {
-        let boxed: Box<dyn DatasetConfig> =
-            toml::from_str("kind = \"llff\"\npath = \"flower\"\nfactor = 4").unwrap();
-        let err = boxed
-            .open(Path::new("/nonexistent-root"))
-            .unwrap_err()
-            .to_string();
+        let boxed: Box<dyn DatasetConfig> = toml::from_str("kind = \"llff\"\npath = \"flower\"\nfactor = 4").unwrap();
+        let err = boxed.open(Path::new("/nonexistent-root")).unwrap_err().to_string();
         assert!(err.contains("flower"), "{err}");
         assert!(toml::from_str::<LlffConfig>("factr = 4").is_err());
         assert!(sos_core::registry::find::<dyn DatasetConfig>("llff").is_some());
@@ -886,21 +678,10 @@ mod tests {
         assert_eq!(scene.test, vec![0, 8, 16, 24, 32]);
         let cam = &scene.views[0].camera;
         assert_eq!((cam.width, cam.height), (504, 378));
-        let SceneExtent::ForwardFacing {
-            near, far, focal, ..
-        } = scene.extent
-        else {
-            unreachable!()
-        };
-        println!(
-            "flower view 0 cam_to_world (recentred): {:?}",
-            cam.cam_to_world
-        );
+        let SceneExtent::ForwardFacing { near, far, focal, .. } = scene.extent else { unreachable!() };
+        println!("flower view 0 cam_to_world (recentred): {:?}", cam.cam_to_world);
         println!("flower near {near} far {far} focal {focal}");
         assert!(near > 0.0 && far > near);
-        assert!(
-            (near - 1.2).abs() < 1e-4,
-            "near = 0.9 / 0.75 by construction, got {near}"
-        );
+        assert!((near - 1.2).abs() < 1e-4, "near = 0.9 / 0.75 by construction, got {near}");
     }
 }

@@ -22,19 +22,15 @@ pub struct NpyArray {
 }
 
 fn invalid(path: &Path, message: impl Into<String>) -> DatasetError {
-    DatasetError::Invalid {
-        path: path.to_path_buf(),
-        message: message.into(),
-    }
+    DatasetError::Invalid { path: path.to_path_buf(), message: message.into() }
 }
 
 /// Reads a `.npy` file.
 pub fn read_npy(path: &Path) -> Result<NpyArray, DatasetError> {
     let bytes = std::fs::read(path).map_err(|e| match e.kind() {
-        std::io::ErrorKind::NotFound => DatasetError::Missing {
-            path: path.to_path_buf(),
-            hint: "expected a .npy file here".into(),
-        },
+        std::io::ErrorKind::NotFound => {
+            DatasetError::Missing { path: path.to_path_buf(), hint: "expected a .npy file here".into() }
+        }
         _ => invalid(path, format!("cannot read: {e}")),
     })?;
     parse_npy(&bytes).map_err(|m| invalid(path, format!("{m}; re-save it with numpy.save")))
@@ -52,36 +48,25 @@ pub fn parse_npy(bytes: &[u8]) -> Result<NpyArray, String> {
             if bytes.len() < 12 {
                 return Err("truncated .npy header".into());
             }
-            (
-                u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
-                12,
-            )
+            (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
         }
         v => return Err(format!("unsupported .npy format version {v}")),
     };
     if header_len > MAX_HEADER || start + header_len > bytes.len() {
-        return Err(format!(
-            "truncated or oversized .npy header ({header_len} bytes)"
-        ));
+        return Err(format!("truncated or oversized .npy header ({header_len} bytes)"));
     }
-    let header = std::str::from_utf8(&bytes[start..start + header_len])
-        .map_err(|_| "header is not text".to_string())?;
+    let header =
+        std::str::from_utf8(&bytes[start..start + header_len]).map_err(|_| "header is not text".to_string())?;
     let descr = dict_value(header, "descr").ok_or("header has no 'descr'")?;
     let descr = descr.trim_matches(|c| c == '\'' || c == '"');
     let width = match descr {
         "<f8" => 8,
         "<f4" => 4,
-        d => {
-            return Err(format!(
-                "dtype {d} is not supported (only little-endian <f8 or <f4)"
-            ))
-        }
+        d => return Err(format!("dtype {d} is not supported (only little-endian <f8 or <f4)")),
     };
     match dict_value(header, "fortran_order") {
         Some("False") => {}
-        Some("True") => {
-            return Err("Fortran-order array; save numpy.ascontiguousarray(a) instead".into())
-        }
+        Some("True") => return Err("Fortran-order array; save numpy.ascontiguousarray(a) instead".into()),
         _ => return Err("header has no valid 'fortran_order'".into()),
     }
     let shape = parse_shape(dict_value(header, "shape").ok_or("header has no 'shape'")?)?;
@@ -93,14 +78,9 @@ pub fn parse_npy(bytes: &[u8]) -> Result<NpyArray, String> {
         .try_fold(1usize, |acc, &d| acc.checked_mul(d))
         .ok_or_else(|| format!("shape {shape:?} overflows"))?;
     let body = &bytes[start + header_len..];
-    let want = count
-        .checked_mul(width)
-        .ok_or_else(|| format!("shape {shape:?} overflows"))?;
+    let want = count.checked_mul(width).ok_or_else(|| format!("shape {shape:?} overflows"))?;
     if body.len() < want {
-        return Err(format!(
-            "truncated: shape {shape:?} needs {want} data bytes, file has {}",
-            body.len()
-        ));
+        return Err(format!("truncated: shape {shape:?} needs {want} data bytes, file has {}", body.len()));
     }
     let data = body[..want]
         .chunks_exact(width)
@@ -115,24 +95,15 @@ pub fn parse_npy(bytes: &[u8]) -> Result<NpyArray, String> {
 /// The raw text of `'key': value` in a numpy header dict (value up to the next top-level comma
 /// or closing brace).
 fn dict_value<'a>(header: &'a str, key: &str) -> Option<&'a str> {
-    let pos = header
-        .find(&format!("'{key}'"))
-        .or_else(|| header.find(&format!("\"{key}\"")))?;
+    let pos = header.find(&format!("'{key}'")).or_else(|| header.find(&format!("\"{key}\"")))?;
     let rest = &header[pos + key.len() + 2..];
     let rest = rest.trim_start().strip_prefix(':')?.trim_start();
-    let end = if rest.starts_with('(') {
-        rest.find(')')? + 1
-    } else {
-        rest.find([',', '}']).unwrap_or(rest.len())
-    };
+    let end = if rest.starts_with('(') { rest.find(')')? + 1 } else { rest.find([',', '}']).unwrap_or(rest.len()) };
     Some(rest[..end].trim())
 }
 
 fn parse_shape(text: &str) -> Result<Vec<usize>, String> {
-    let inner = text
-        .strip_prefix('(')
-        .and_then(|t| t.strip_suffix(')'))
-        .ok_or_else(|| format!("bad shape {text}"))?;
+    let inner = text.strip_prefix('(').and_then(|t| t.strip_suffix(')')).ok_or_else(|| format!("bad shape {text}"))?;
     inner
         .split(',')
         .map(str::trim)
@@ -144,17 +115,10 @@ fn parse_shape(text: &str) -> Result<Vec<usize>, String> {
 /// Writes a C-order `<f8` array in `.npy` format version 1.0.
 pub fn write_npy(path: &Path, shape: &[usize], data: &[f64]) -> Result<(), DatasetError> {
     if shape.iter().product::<usize>() != data.len() {
-        return Err(invalid(
-            path,
-            format!("shape {shape:?} does not match {} values", data.len()),
-        ));
+        return Err(invalid(path, format!("shape {shape:?} does not match {} values", data.len())));
     }
     let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
-    let shape_text = if dims.len() == 1 {
-        format!("({},)", dims[0])
-    } else {
-        format!("({})", dims.join(", "))
-    };
+    let shape_text = if dims.len() == 1 { format!("({},)", dims[0]) } else { format!("({})", dims.join(", ")) };
     let mut header = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': {shape_text}, }}");
     // numpy pads the header with spaces and a newline to a multiple of 64 bytes.
     let total = 10 + header.len() + 1;
@@ -169,8 +133,7 @@ pub fn write_npy(path: &Path, shape: &[usize], data: &[f64]) -> Result<(), Datas
         bytes.extend_from_slice(&v.to_le_bytes());
     }
     if let Some(parent) = path.parent() {
-        std::fs::create_dir_all(parent)
-            .map_err(|e| invalid(parent, format!("cannot create: {e}")))?;
+        std::fs::create_dir_all(parent).map_err(|e| invalid(parent, format!("cannot create: {e}")))?;
     }
     std::fs::write(path, bytes).map_err(|e| invalid(path, format!("cannot write: {e}")))
 }
@@ -191,11 +154,7 @@ mod tests {
         let data: Vec<f64> = (0..34 * 17).map(|i| i as f64 * 0.25 - 3.0).collect();
         write_npy(&path, &[34, 17], &data).unwrap();
         let bytes = std::fs::read(&path).unwrap();
-        assert_eq!(
-            (bytes.len() - data.len() * 8) % 64,
-            0,
-            "header not 64-aligned"
-        );
+        assert_eq!((bytes.len() - data.len() * 8) % 64, 0, "header not 64-aligned");
         let back = read_npy(&path).unwrap();
         assert_eq!(back.shape, vec![34, 17]);
         assert_eq!(back.data, data);
@@ -234,27 +193,15 @@ mod tests {
             b.extend_from_slice(&good[header_end..]);
             b
         };
+        cases.push(("big endian", with_header("{'descr': '>f8', 'fortran_order': False, 'shape': (4, 17), }")));
+        cases.push(("fortran", with_header("{'descr': '<f8', 'fortran_order': True, 'shape': (4, 17), }")));
+        cases.push(("3-D", with_header("{'descr': '<f8', 'fortran_order': False, 'shape': (2, 2, 17), }")));
         cases.push((
-            "big endian",
-            with_header("{'descr': '>f8', 'fortran_order': False, 'shape': (4, 17), }"),
+            "overflow",
+            with_header("{'descr': '<f8', 'fortran_order': False, 'shape': (99999999999999, 99999999999), }"),
         ));
-        cases.push((
-            "fortran",
-            with_header("{'descr': '<f8', 'fortran_order': True, 'shape': (4, 17), }"),
-        ));
-        cases.push((
-            "3-D",
-            with_header("{'descr': '<f8', 'fortran_order': False, 'shape': (2, 2, 17), }"),
-        ));
-        cases.push(("overflow", with_header("{'descr': '<f8', 'fortran_order': False, 'shape': (99999999999999, 99999999999), }")));
-        cases.push((
-            "garbage shape",
-            with_header("{'descr': '<f8', 'fortran_order': False, 'shape': (a, b), }"),
-        ));
-        cases.push((
-            "no shape",
-            with_header("{'descr': '<f8', 'fortran_order': False}"),
-        ));
+        cases.push(("garbage shape", with_header("{'descr': '<f8', 'fortran_order': False, 'shape': (a, b), }")));
+        cases.push(("no shape", with_header("{'descr': '<f8', 'fortran_order': False}")));
         let mut huge = good.clone();
         huge[8] = 0xff;
         huge[9] = 0xff;
@@ -264,13 +211,8 @@ mod tests {
             let err = read_npy(&path).expect_err(what).to_string();
             assert!(err.contains("bad.npy"), "{what}: {err}");
         }
-        let missing = read_npy(&path.with_file_name("nope.npy"))
-            .unwrap_err()
-            .to_string();
-        assert!(
-            missing.contains("nope.npy") && missing.contains("missing"),
-            "{missing}"
-        );
+        let missing = read_npy(&path.with_file_name("nope.npy")).unwrap_err().to_string();
+        assert!(missing.contains("nope.npy") && missing.contains("missing"), "{missing}");
         std::fs::remove_dir_all(path.parent().unwrap()).ok();
     }
 }

@@ -22,11 +22,7 @@ fn dot(a: V3, b: V3) -> f64 {
 }
 
 fn cross(a: V3, b: V3) -> V3 {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 }
 
 fn normalize(v: V3) -> V3 {
@@ -72,11 +68,7 @@ pub fn poses_avg(poses: &[Pose]) -> Pose {
 }
 
 /// The identity pose.
-pub const IDENTITY: Pose = [
-    [1.0, 0.0, 0.0, 0.0],
-    [0.0, 1.0, 0.0, 0.0],
-    [0.0, 0.0, 1.0, 0.0],
-];
+pub const IDENTITY: Pose = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]];
 
 /// `a · b` as 4x4 transforms with an implicit `[0 0 0 1]` bottom row.
 pub fn compose(a: &Pose, b: &Pose) -> Pose {
@@ -118,15 +110,7 @@ pub fn recenter(poses: &[Pose]) -> (Vec<Pose>, Pose) {
 /// `n` poses over `rots` turns around `c2w`, radii `rads` along its (right, up, back) axes,
 /// z oscillating at `zrate` of the angular rate, every camera looking at the point `focal`
 /// in front of `c2w`, up hint `up`.
-pub fn spiral_path(
-    c2w: &Pose,
-    up: V3,
-    rads: V3,
-    focal: f64,
-    zrate: f64,
-    rots: f64,
-    n: usize,
-) -> Vec<Pose> {
+pub fn spiral_path(c2w: &Pose, up: V3, rads: V3, focal: f64, zrate: f64, rots: f64, n: usize) -> Vec<Pose> {
     let apply = |v: [f64; 4]| -> V3 {
         let mut out = [0.0; 3];
         for r in 0..3 {
@@ -139,12 +123,7 @@ pub fn spiral_path(
         .map(|i| {
             // np.linspace(0, 2π·rots, n + 1)[:-1]
             let theta = 2.0 * std::f64::consts::PI * rots * i as f64 / n as f64;
-            let c = apply([
-                theta.cos() * rads[0],
-                -theta.sin() * rads[1],
-                -(theta * zrate).sin() * rads[2],
-                1.0,
-            ]);
+            let c = apply([theta.cos() * rads[0], -theta.sin() * rads[1], -(theta * zrate).sin() * rads[2], 1.0]);
             let z = [c[0] - target[0], c[1] - target[1], c[2] - target[2]];
             view_matrix(z, up, c)
         })
@@ -273,12 +252,7 @@ pub fn spherify(poses: &[Pose], n: usize) -> Option<Spherified> {
     }
     let inv_c2w = invert_rigid(&c2w);
     let mut reset: Vec<Pose> = poses.iter().map(|p| compose(&inv_c2w, p)).collect();
-    let rad = (reset
-        .iter()
-        .map(|p| dot(column(p, 3), column(p, 3)))
-        .sum::<f64>()
-        / m)
-        .sqrt();
+    let rad = (reset.iter().map(|p| dot(column(p, 3), column(p, 3))).sum::<f64>() / m).sqrt();
     if !(rad > 0.0 && rad.is_finite()) {
         return None;
     }
@@ -290,11 +264,7 @@ pub fn spherify(poses: &[Pose], n: usize) -> Option<Spherified> {
     let radcircle = (1.0 - zh * zh).max(0.0).sqrt();
     let path = (0..n)
         .map(|i| {
-            let th = if n > 1 {
-                2.0 * std::f64::consts::PI * i as f64 / (n - 1) as f64
-            } else {
-                0.0
-            };
+            let th = if n > 1 { 2.0 * std::f64::consts::PI * i as f64 / (n - 1) as f64 } else { 0.0 };
             let origin = [radcircle * th.cos(), radcircle * th.sin(), zh];
             let up = [0.0, 0.0, -1.0];
             let v2 = normalize(origin);
@@ -307,11 +277,7 @@ pub fn spherify(poses: &[Pose], n: usize) -> Option<Spherified> {
             p
         })
         .collect();
-    Some(Spherified {
-        poses: reset,
-        path,
-        scale,
-    })
+    Some(Spherified { poses: reset, path, scale })
 }
 
 /// 3x3 matrix in `f64`, rows.
@@ -335,8 +301,7 @@ pub fn mul3v(m: &M3, v: V3) -> V3 {
 
 /// Determinant of a 3x3 matrix.
 pub fn det3(m: &M3) -> f64 {
-    m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+    m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
         + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
 }
 
@@ -348,8 +313,7 @@ pub fn invert3(m: &M3) -> Option<M3> {
     if !det.is_finite() || scale == 0.0 || det.abs() <= 1e-12 * scale.powi(3) {
         return None;
     }
-    let c =
-        |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
+    let c = |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
     let adj = [
         [c(1, 2, 1, 2), -c(0, 2, 1, 2), c(0, 1, 1, 2)],
         [-c(1, 2, 0, 2), c(0, 2, 0, 2), -c(0, 1, 0, 2)],
@@ -419,21 +383,9 @@ pub fn rotation_from_quaternion(q: [f64; 4]) -> M3 {
     let n = (q.iter().map(|v| v * v).sum::<f64>()).sqrt();
     let [w, x, y, z] = q.map(|v| v / n);
     [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
+        [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
+        [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
+        [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
     ]
 }
 
@@ -442,36 +394,16 @@ pub fn quaternion_from_rotation(m: &M3) -> [f64; 4] {
     let tr = m[0][0] + m[1][1] + m[2][2];
     let q = if tr > 0.0 {
         let s = 2.0 * (tr + 1.0).sqrt();
-        [
-            0.25 * s,
-            (m[2][1] - m[1][2]) / s,
-            (m[0][2] - m[2][0]) / s,
-            (m[1][0] - m[0][1]) / s,
-        ]
+        [0.25 * s, (m[2][1] - m[1][2]) / s, (m[0][2] - m[2][0]) / s, (m[1][0] - m[0][1]) / s]
     } else if m[0][0] > m[1][1] && m[0][0] > m[2][2] {
         let s = 2.0 * (1.0 + m[0][0] - m[1][1] - m[2][2]).sqrt();
-        [
-            (m[2][1] - m[1][2]) / s,
-            0.25 * s,
-            (m[0][1] + m[1][0]) / s,
-            (m[0][2] + m[2][0]) / s,
-        ]
+        [(m[2][1] - m[1][2]) / s, 0.25 * s, (m[0][1] + m[1][0]) / s, (m[0][2] + m[2][0]) / s]
     } else if m[1][1] > m[2][2] {
         let s = 2.0 * (1.0 + m[1][1] - m[0][0] - m[2][2]).sqrt();
-        [
-            (m[0][2] - m[2][0]) / s,
-            (m[0][1] + m[1][0]) / s,
-            0.25 * s,
-            (m[1][2] + m[2][1]) / s,
-        ]
+        [(m[0][2] - m[2][0]) / s, (m[0][1] + m[1][0]) / s, 0.25 * s, (m[1][2] + m[2][1]) / s]
     } else {
         let s = 2.0 * (1.0 + m[2][2] - m[0][0] - m[1][1]).sqrt();
-        [
-            (m[1][0] - m[0][1]) / s,
-            (m[0][2] + m[2][0]) / s,
-            (m[1][2] + m[2][1]) / s,
-            0.25 * s,
-        ]
+        [(m[1][0] - m[0][1]) / s, (m[0][2] + m[2][0]) / s, (m[1][2] + m[2][1]) / s, 0.25 * s]
     };
     let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
     let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
@@ -480,15 +412,7 @@ pub fn quaternion_from_rotation(m: &M3) -> [f64; 4] {
 
 /// A camera with general pinhole intrinsics.
 #[allow(clippy::too_many_arguments)]
-pub fn to_camera_general(
-    p: &Pose,
-    width: u32,
-    height: u32,
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-) -> Camera {
+pub fn to_camera_general(p: &Pose, width: u32, height: u32, fx: f64, fy: f64, cx: f64, cy: f64) -> Camera {
     Camera {
         width,
         height,
@@ -505,10 +429,7 @@ mod tests {
     use super::*;
 
     fn close(a: &Pose, b: &Pose, tol: f64) -> bool {
-        a.iter()
-            .flatten()
-            .zip(b.iter().flatten())
-            .all(|(x, y)| (x - y).abs() < tol)
+        a.iter().flatten().zip(b.iter().flatten()).all(|(x, y)| (x - y).abs() < tol)
     }
 
     #[test]
@@ -533,11 +454,7 @@ mod tests {
         assert!(close(&from_world_to_camera(&r, t).unwrap(), &p, 1e-12));
         let q = quaternion_from_rotation(&r);
         let rq = rotation_from_quaternion(q);
-        assert!(r
-            .iter()
-            .flatten()
-            .zip(rq.iter().flatten())
-            .all(|(a, b)| (a - b).abs() < 1e-12));
+        assert!(r.iter().flatten().zip(rq.iter().flatten()).all(|(a, b)| (a - b).abs() < 1e-12));
         // The OpenCV camera looks along +z: the OpenGL back axis is its negation.
         let (rc, c) = to_opencv(&p);
         assert!((0..3).all(|k| (rc[k][2] + p[k][2]).abs() < 1e-15 && c[k] == p[k][3]));
@@ -553,11 +470,7 @@ mod tests {
             [[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]],
         ] {
             let back = rotation_from_quaternion(quaternion_from_rotation(&m));
-            assert!(m
-                .iter()
-                .flatten()
-                .zip(back.iter().flatten())
-                .all(|(a, b)| (a - b).abs() < 1e-12));
+            assert!(m.iter().flatten().zip(back.iter().flatten()).all(|(a, b)| (a - b).abs() < 1e-12));
         }
     }
 
@@ -570,10 +483,7 @@ mod tests {
             let cam = to_camera(p, 10, 10, 5.0);
             cam.validate().unwrap();
             let px = cam.project([0.0, 0.0, -focal as f32]).unwrap();
-            assert!(
-                (px[0] - 5.0).abs() < 1e-3 && (px[1] - 5.0).abs() < 1e-3,
-                "{px:?}"
-            );
+            assert!((px[0] - 5.0).abs() < 1e-3 && (px[1] - 5.0).abs() < 1e-3, "{px:?}");
         }
     }
 }

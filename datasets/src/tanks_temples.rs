@@ -58,12 +58,7 @@ pub struct TanksTemplesConfig {
 
 impl Default for TanksTemplesConfig {
     fn default() -> Self {
-        TanksTemplesConfig {
-            path: PathBuf::new(),
-            test_split: "test".into(),
-            normalize: Normalize::Auto,
-            near: 0.0,
-        }
+        TanksTemplesConfig { path: PathBuf::new(), test_split: "test".into(), normalize: Normalize::Auto, near: 0.0 }
     }
 }
 
@@ -94,13 +89,7 @@ pub fn parse_k(path: &Path, text: &str) -> Result<[[f64; 3]; 3], DatasetError> {
         ));
     }
     if !(k[0][0] > 0.0 && k[1][1] > 0.0) {
-        return Err(invalid(
-            path,
-            format!(
-                "focal lengths must be positive, got {} {}",
-                k[0][0], k[1][1]
-            ),
-        ));
+        return Err(invalid(path, format!("focal lengths must be positive, got {} {}", k[0][0], k[1][1])));
     }
     Ok(k)
 }
@@ -109,10 +98,7 @@ pub fn parse_k(path: &Path, text: &str) -> Result<[[f64; 3]; 3], DatasetError> {
 pub fn parse_c2w_opencv(path: &Path, text: &str) -> Result<Pose, DatasetError> {
     let m = matrix4(path, text)?;
     if m[3] != [0.0, 0.0, 0.0, 1.0] {
-        return Err(invalid(
-            path,
-            "the last row of the pose must be 0 0 0 1; fix the matrix",
-        ));
+        return Err(invalid(path, "the last row of the pose must be 0 0 0 1; fix the matrix"));
     }
     let r = [0, 1, 2].map(|i| [m[i][0], m[i][1], m[i][2]]);
     Ok(pose::from_opencv(&r, [m[0][3], m[1][3], m[2][3]]))
@@ -130,9 +116,7 @@ fn split_files(root: &Path, split: &str) -> Result<SplitFiles, DatasetError> {
     if !rgb.is_dir() {
         return Err(DatasetError::Missing {
             path: rgb,
-            hint: format!(
-                "the NeRF++ layout needs {split}/rgb, {split}/pose and {split}/intrinsics"
-            ),
+            hint: format!("the NeRF++ layout needs {split}/rgb, {split}/pose and {split}/intrinsics"),
         });
     }
     let images = list_images(&rgb)?;
@@ -160,10 +144,7 @@ fn load_split(files: &SplitFiles) -> Result<Vec<View>, DatasetError> {
             let s = stem(img_path);
             let pose_path = files.dir.join("pose").join(format!("{s}.txt"));
             let k_path = files.dir.join("intrinsics").join(format!("{s}.txt"));
-            let hint = format!(
-                "the pose and intrinsics of {} (same stem, .txt)",
-                img_path.display()
-            );
+            let hint = format!("the pose and intrinsics of {} (same stem, .txt)", img_path.display());
             let pose = parse_c2w_opencv(&pose_path, &read_text(&pose_path, &hint)?)?;
             let k = parse_k(&k_path, &read_text(&k_path, &hint)?)?;
             let image = sos_core::image::RgbImage::load(img_path)?;
@@ -178,12 +159,7 @@ fn load_split(files: &SplitFiles) -> Result<Vec<View>, DatasetError> {
             let camera = checked_camera(&pose_path, "camera-to-world matrix", &pose, &intr)?;
             let mask_path = find_with_stem(&files.dir.join("mask"), s);
             let mask = optional_mask(mask_path.as_deref(), image.width, image.height)?;
-            Ok(View {
-                name: s.to_string(),
-                camera,
-                image,
-                mask,
-            })
+            Ok(View { name: s.to_string(), camera, image, mask })
         })
         .collect()
 }
@@ -200,10 +176,7 @@ pub fn camera_sphere(views: &[View]) -> ([f64; 3], f64) {
         .iter()
         .map(|v| {
             let o = v.camera.origin();
-            (0..3)
-                .map(|k| (o[k] as f64 - c[k]).powi(2))
-                .sum::<f64>()
-                .sqrt()
+            (0..3).map(|k| (o[k] as f64 - c[k]).powi(2)).sum::<f64>().sqrt()
         })
         .fold(0.0, f64::max);
     (c, 1.1 * d)
@@ -214,17 +187,13 @@ pub fn load_tanks_temples(cfg: &TanksTemplesConfig, root: &Path) -> Result<Scene
     if cfg.test_split != "test" && cfg.test_split != "validation" {
         return Err(invalid(
             root,
-            format!(
-                "config key `test_split` must be \"test\" or \"validation\", got {:?}",
-                cfg.test_split
-            ),
+            format!("config key `test_split` must be \"test\" or \"validation\", got {:?}", cfg.test_split),
         ));
     }
     if !root.is_dir() {
         return Err(DatasetError::Missing {
             path: root.to_path_buf(),
-            hint: "expected a NeRF++-layout scene folder with train/ and test/; check `path`"
-                .into(),
+            hint: "expected a NeRF++-layout scene folder with train/ and test/; check `path`".into(),
         });
     }
     let train_files = split_files(root, "train")?;
@@ -256,20 +225,11 @@ pub fn load_tanks_temples(cfg: &TanksTemplesConfig, root: &Path) -> Result<Scene
                 *t = ((*t as f64 - c) * scale) as f32;
             }
         }
-        SceneExtent::Unbounded {
-            center: [0.0; 3],
-            radius: 1.0,
-        }
+        SceneExtent::Unbounded { center: [0.0; 3], radius: 1.0 }
     } else if cfg.normalize == Normalize::Auto {
-        SceneExtent::Unbounded {
-            center: [0.0; 3],
-            radius: 1.0,
-        }
+        SceneExtent::Unbounded { center: [0.0; 3], radius: 1.0 }
     } else {
-        SceneExtent::Unbounded {
-            center: centre.map(|v| v as f32),
-            radius: radius.max(1e-6) as f32,
-        }
+        SceneExtent::Unbounded { center: centre.map(|v| v as f32), radius: radius.max(1e-6) as f32 }
     };
     let train: Vec<usize> = (0..n_train).collect();
     let test: Vec<usize> = (n_train..views.len()).collect();

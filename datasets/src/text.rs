@@ -7,19 +7,13 @@ use sos_core::plugin::dataset::DatasetError;
 
 /// An [`DatasetError::Invalid`] for `path`.
 pub fn invalid(path: &Path, message: impl Into<String>) -> DatasetError {
-    DatasetError::Invalid {
-        path: path.to_path_buf(),
-        message: message.into(),
-    }
+    DatasetError::Invalid { path: path.to_path_buf(), message: message.into() }
 }
 
 /// Reads a file; a missing file is [`DatasetError::Missing`] with `hint`.
 pub fn read_bytes(path: &Path, hint: &str) -> Result<Vec<u8>, DatasetError> {
     std::fs::read(path).map_err(|e| match e.kind() {
-        std::io::ErrorKind::NotFound => DatasetError::Missing {
-            path: path.to_path_buf(),
-            hint: hint.to_string(),
-        },
+        std::io::ErrorKind::NotFound => DatasetError::Missing { path: path.to_path_buf(), hint: hint.to_string() },
         _ => invalid(path, format!("cannot read: {e}")),
     })
 }
@@ -33,8 +27,7 @@ pub fn read_text(path: &Path, hint: &str) -> Result<String, DatasetError> {
 /// Writes `contents` to `path`, creating the parent folder.
 pub fn write_file(path: &Path, contents: &[u8]) -> Result<(), DatasetError> {
     if let Some(parent) = path.parent() {
-        std::fs::create_dir_all(parent)
-            .map_err(|e| invalid(parent, format!("cannot create the folder: {e}")))?;
+        std::fs::create_dir_all(parent).map_err(|e| invalid(parent, format!("cannot create the folder: {e}")))?;
     }
     std::fs::write(path, contents).map_err(|e| invalid(path, format!("cannot write: {e}")))
 }
@@ -42,16 +35,10 @@ pub fn write_file(path: &Path, contents: &[u8]) -> Result<(), DatasetError> {
 /// Parses one whitespace-separated number; `what` says where it is (e.g. "line 3").
 pub fn number(path: &Path, token: &str, what: &str) -> Result<f64, DatasetError> {
     let v: f64 = token.parse().map_err(|_| {
-        invalid(
-            path,
-            format!("{what}: expected a number, found {token:?}; fix or regenerate the file"),
-        )
+        invalid(path, format!("{what}: expected a number, found {token:?}; fix or regenerate the file"))
     })?;
     if !v.is_finite() {
-        return Err(invalid(
-            path,
-            format!("{what}: value {token} is not finite (NaN or inf); fix the camera"),
-        ));
+        return Err(invalid(path, format!("{what}: value {token} is not finite (NaN or inf); fix the camera")));
     }
     Ok(v)
 }
@@ -73,10 +60,7 @@ pub fn matrix4(path: &Path, text: &str) -> Result<[[f64; 4]; 4], DatasetError> {
     if v.len() != 16 {
         return Err(invalid(
             path,
-            format!(
-                "expected a 4x4 matrix (16 numbers), found {} numbers; write the full matrix",
-                v.len()
-            ),
+            format!("expected a 4x4 matrix (16 numbers), found {} numbers; write the full matrix", v.len()),
         ));
     }
     let mut m = [[0.0; 4]; 4];
@@ -106,11 +90,7 @@ pub struct Reader<'a> {
 impl<'a> Reader<'a> {
     /// A reader at the start of `bytes` (read from `path`).
     pub fn new(path: &'a Path, bytes: &'a [u8]) -> Self {
-        Reader {
-            path,
-            bytes,
-            pos: 0,
-        }
+        Reader { path, bytes, pos: 0 }
     }
 
     /// Bytes not read yet.
@@ -122,10 +102,7 @@ impl<'a> Reader<'a> {
         if self.remaining() < n {
             return Err(invalid(
                 self.path,
-                format!(
-                    "truncated at byte {} while reading {what}; re-export the model",
-                    self.pos
-                ),
+                format!("truncated at byte {} while reading {what}; re-export the model", self.pos),
             ));
         }
         let s = &self.bytes[self.pos..self.pos + n];
@@ -160,10 +137,7 @@ impl<'a> Reader<'a> {
     pub fn c_string(&mut self, what: &str) -> Result<String, DatasetError> {
         let rest = &self.bytes[self.pos..];
         let end = rest.iter().position(|&b| b == 0).ok_or_else(|| {
-            invalid(
-                self.path,
-                format!("truncated: {what} has no terminating NUL byte; re-export the model"),
-            )
+            invalid(self.path, format!("truncated: {what} has no terminating NUL byte; re-export the model"))
         })?;
         let s = std::str::from_utf8(&rest[..end])
             .map_err(|_| invalid(self.path, format!("{what} is not UTF-8")))?
@@ -186,10 +160,7 @@ mod tests {
         let err = matrix4(p, "1 0 0\n").unwrap_err().to_string();
         assert!(err.contains("m.txt") && err.contains("16 numbers"), "{err}");
         let err = numbers(p, "1 2\n3 nan").unwrap_err().to_string();
-        assert!(
-            err.contains("line 2") && err.contains("not finite"),
-            "{err}"
-        );
+        assert!(err.contains("line 2") && err.contains("not finite"), "{err}");
         let err = numbers(p, "1 x").unwrap_err().to_string();
         assert!(err.contains("\"x\""), "{err}");
     }
@@ -201,10 +172,7 @@ mod tests {
         let mut r = Reader::new(p, &bytes);
         assert_eq!(r.u64("count").unwrap(), 1);
         let err = r.i32("camera id").unwrap_err().to_string();
-        assert!(
-            err.contains("cameras.bin") && err.contains("truncated"),
-            "{err}"
-        );
+        assert!(err.contains("cameras.bin") && err.contains("truncated"), "{err}");
         let mut r = Reader::new(p, b"abc\0de");
         assert_eq!(r.c_string("name").unwrap(), "abc");
         assert!(r.c_string("name").is_err());

@@ -5,9 +5,9 @@
 use std::path::Path;
 
 use sos_core::camera::{Camera, Vec3};
+use sos_core::derived::DerivedSetting;
 use sos_core::image::{GrayImage, RgbImage};
 use sos_core::plugin::dataset::DatasetError;
-use sos_core::derived::DerivedSetting;
 use sos_core::scene::{solve3, Scene, SceneExtent, View};
 
 use crate::image_files::load_mask;
@@ -46,54 +46,30 @@ impl Intrinsics {
 
     /// The 3x3 calibration matrix.
     pub fn k(&self) -> [[f64; 3]; 3] {
-        [
-            [self.fx, 0.0, self.cx],
-            [0.0, self.fy, self.cy],
-            [0.0, 0.0, 1.0],
-        ]
+        [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]]
     }
 }
 
 /// A camera from `pose` (OpenGL axes) and `k`, checked; errors name `file` and `what`
 /// (e.g. "image 12") and say what to fix.
-pub fn checked_camera(
-    file: &Path,
-    what: &str,
-    pose: &Pose,
-    k: &Intrinsics,
-) -> Result<Camera, DatasetError> {
+pub fn checked_camera(file: &Path, what: &str, pose: &Pose, k: &Intrinsics) -> Result<Camera, DatasetError> {
     let r = [0, 1, 2].map(|i| [pose[i][0], pose[i][1], pose[i][2]]);
     if let Some(problem) = pose::rotation_problem(&r) {
-        return Err(invalid(
-            file,
-            format!("{what}: {problem}; fix or drop this camera"),
-        ));
+        return Err(invalid(file, format!("{what}: {problem}; fix or drop this camera")));
     }
     if (0..3).any(|i| !pose[i][3].is_finite()) {
-        return Err(invalid(
-            file,
-            format!("{what}: camera centre is not finite; fix or drop this camera"),
-        ));
+        return Err(invalid(file, format!("{what}: camera centre is not finite; fix or drop this camera")));
     }
     if k.width == 0 || k.height == 0 {
-        return Err(invalid(
-            file,
-            format!("{what}: zero image size {}x{}", k.width, k.height),
-        ));
+        return Err(invalid(file, format!("{what}: zero image size {}x{}", k.width, k.height)));
     }
     let cam = pose::to_camera_general(pose, k.width, k.height, k.fx, k.fy, k.cx, k.cy);
-    cam.validate()
-        .map_err(|e| invalid(file, format!("{what}: {e}; fix the intrinsics or the pose")))?;
+    cam.validate().map_err(|e| invalid(file, format!("{what}: {e}; fix the intrinsics or the pose")))?;
     Ok(cam)
 }
 
 /// Reads an image and checks it has the size its camera file states.
-pub fn load_image_sized(
-    path: &Path,
-    width: u32,
-    height: u32,
-    source: &Path,
-) -> Result<RgbImage, DatasetError> {
+pub fn load_image_sized(path: &Path, width: u32, height: u32, source: &Path) -> Result<RgbImage, DatasetError> {
     let img = RgbImage::load(path)?;
     if (img.width, img.height) != (width as usize, height as usize) {
         return Err(invalid(
@@ -111,11 +87,7 @@ pub fn load_image_sized(
 }
 
 /// The optional mask at `path` (thresholded at 0.5), checked against the image size.
-pub fn optional_mask(
-    path: Option<&Path>,
-    width: usize,
-    height: usize,
-) -> Result<Option<GrayImage>, DatasetError> {
+pub fn optional_mask(path: Option<&Path>, width: usize, height: usize) -> Result<Option<GrayImage>, DatasetError> {
     match path {
         Some(p) => Ok(Some(load_mask(p, width, height)?)),
         None => Ok(None),
@@ -124,10 +96,7 @@ pub fn optional_mask(
 
 /// The scene name: the folder's name, or `fallback`.
 pub fn scene_name(root: &Path, fallback: &str) -> String {
-    root.file_name()
-        .and_then(|n| n.to_str())
-        .unwrap_or(fallback)
-        .to_string()
+    root.file_name().and_then(|n| n.to_str()).unwrap_or(fallback).to_string()
 }
 
 /// The extent of layouts that store no scene bounds (COLMAP, BlendedMVS, CO3D, opaque Blender
@@ -185,13 +154,8 @@ pub fn extent_setting(scene: &Scene, reason: &str) -> DerivedSetting {
 /// Checks a user-given box.
 pub fn check_aabb(root: &Path, aabb: Option<[Vec3; 2]>) -> Result<(), DatasetError> {
     match aabb {
-        Some([min, max])
-            if !(0..3).all(|k| min[k] < max[k] && min[k].is_finite() && max[k].is_finite()) =>
-        {
-            Err(invalid(
-                root,
-                "config key `aabb`: min must be below max on every axis",
-            ))
+        Some([min, max]) if !(0..3).all(|k| min[k] < max[k] && min[k].is_finite() && max[k].is_finite()) => {
+            Err(invalid(root, "config key `aabb`: min must be below max on every axis"))
         }
         _ => Ok(()),
     }

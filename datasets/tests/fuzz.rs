@@ -18,18 +18,11 @@ use sos_datasets::synthetic::{generate, Rig, SyntheticConfig};
 use sos_datasets::{blendedmvs, co3d, colmap, npy, tanks_temples};
 
 fn cases() -> u32 {
-    std::env::var("SOS_FUZZ_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(1000)
+    std::env::var("SOS_FUZZ_CASES").ok().and_then(|v| v.parse().ok()).unwrap_or(1000)
 }
 
 fn runner(cases: u32) -> TestRunner {
-    TestRunner::new(Config {
-        cases,
-        failure_persistence: None,
-        ..Config::default()
-    })
+    TestRunner::new(Config { cases, failure_persistence: None, ..Config::default() })
 }
 
 /// The generator's small object-centric scene written in every layout to a folder of the test
@@ -217,9 +210,7 @@ fn apply(bytes: &[u8], m: &Mutation) -> Vec<u8> {
 
 fn gunzip(bytes: &[u8]) -> Vec<u8> {
     let mut out = Vec::new();
-    flate2::read::GzDecoder::new(bytes)
-        .read_to_end(&mut out)
-        .unwrap();
+    flate2::read::GzDecoder::new(bytes).read_to_end(&mut out).unwrap();
     out
 }
 
@@ -243,19 +234,11 @@ fn parse(path: &Path, bytes: &[u8]) -> Option<bool> {
         "images.txt" => colmap::parse_images_txt(path, &text()).is_ok(),
         "intrinsics.txt" => blendedmvs::parse_nsvf_intrinsics(path, &text()).is_ok(),
         "bbox.txt" => blendedmvs::parse_bbox(path, &text()).is_ok(),
-        "frame_annotations.jgz" => {
-            co3d::parse_jgz::<Vec<co3d::FrameAnnotation>>(path, bytes).is_ok()
-        }
-        "sequence_annotations.jgz" => {
-            co3d::parse_jgz::<Vec<co3d::SequenceAnnotation>>(path, bytes).is_ok()
-        }
+        "frame_annotations.jgz" => co3d::parse_jgz::<Vec<co3d::FrameAnnotation>>(path, bytes).is_ok(),
+        "sequence_annotations.jgz" => co3d::parse_jgz::<Vec<co3d::SequenceAnnotation>>(path, bytes).is_ok(),
         n if n.ends_with("_cam.txt") => blendedmvs::parse_cam_txt(path, &text()).is_ok(),
-        n if n.ends_with(".txt") && parent == "pose" => {
-            tanks_temples::parse_c2w_opencv(path, &text()).is_ok()
-        }
-        n if n.ends_with(".txt") && parent == "intrinsics" => {
-            tanks_temples::parse_k(path, &text()).is_ok()
-        }
+        n if n.ends_with(".txt") && parent == "pose" => tanks_temples::parse_c2w_opencv(path, &text()).is_ok(),
+        n if n.ends_with(".txt") && parent == "intrinsics" => tanks_temples::parse_k(path, &text()).is_ok(),
         _ => return None,
     })
 }
@@ -271,21 +254,9 @@ fn parser_seeds(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
             // One file per parser kind and layout is enough.
             let key = |p: &Path| {
                 let n = p.file_name().unwrap().to_str().unwrap();
-                let kind = if n.ends_with("_cam.txt") {
-                    "_cam.txt"
-                } else {
-                    n
-                };
-                let kind = if p.parent().unwrap().ends_with("pose") {
-                    "pose"
-                } else {
-                    kind
-                };
-                let kind = if p.parent().unwrap().ends_with("intrinsics") {
-                    "k"
-                } else {
-                    kind
-                };
+                let kind = if n.ends_with("_cam.txt") { "_cam.txt" } else { n };
+                let kind = if p.parent().unwrap().ends_with("pose") { "pose" } else { kind };
+                let kind = if p.parent().unwrap().ends_with("intrinsics") { "k" } else { kind };
                 kind.to_string()
             };
             if !seeds.iter().any(|(s, _)| key(s) == key(&f)) {
@@ -351,30 +322,27 @@ fn loaders_never_panic_on_mutated_layouts() {
         let files = files_below(&seed);
         let (tried, failed) = (AtomicUsize::new(0), AtomicUsize::new(0));
         runner(n)
-            .run(
-                &(0..files.len(), mutation(), any::<bool>()),
-                |(k, m, remove)| {
-                    let dir = work.join(f.name());
-                    std::fs::remove_dir_all(&dir).ok();
-                    copy_dir(&seed, &dir);
-                    let target = dir.join(files[k].strip_prefix(&seed).unwrap());
-                    if remove && matches!(m, Mutation::Empty) {
-                        std::fs::remove_file(&target).unwrap();
-                    } else {
-                        let bytes = std::fs::read(&target).unwrap();
-                        std::fs::write(&target, apply(&bytes, &m)).unwrap();
-                    }
-                    let result = f.open_raw(&dir, None);
-                    tried.fetch_add(1, Ordering::Relaxed);
-                    if let Err(e) = result {
-                        failed.fetch_add(1, Ordering::Relaxed);
-                        // Typed errors name a file or folder of the layout.
-                        let msg = e.to_string();
-                        prop_assert!(msg.contains(&*dir.to_string_lossy()), "{msg}");
-                    }
-                    Ok(())
-                },
-            )
+            .run(&(0..files.len(), mutation(), any::<bool>()), |(k, m, remove)| {
+                let dir = work.join(f.name());
+                std::fs::remove_dir_all(&dir).ok();
+                copy_dir(&seed, &dir);
+                let target = dir.join(files[k].strip_prefix(&seed).unwrap());
+                if remove && matches!(m, Mutation::Empty) {
+                    std::fs::remove_file(&target).unwrap();
+                } else {
+                    let bytes = std::fs::read(&target).unwrap();
+                    std::fs::write(&target, apply(&bytes, &m)).unwrap();
+                }
+                let result = f.open_raw(&dir, None);
+                tried.fetch_add(1, Ordering::Relaxed);
+                if let Err(e) = result {
+                    failed.fetch_add(1, Ordering::Relaxed);
+                    // Typed errors name a file or folder of the layout.
+                    let msg = e.to_string();
+                    prop_assert!(msg.contains(&*dir.to_string_lossy()), "{msg}");
+                }
+                Ok(())
+            })
             .unwrap();
         summary.push(format!(
             "{}: {} cases, {} errors",

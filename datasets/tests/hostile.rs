@@ -19,13 +19,7 @@ fn temp_dir(name: &str) -> PathBuf {
 }
 
 fn scene() -> Scene {
-    generate(&SyntheticConfig {
-        rig: Rig::ObjectCentric,
-        width: 40,
-        height: 30,
-        views: 10,
-        ..Default::default()
-    })
+    generate(&SyntheticConfig { rig: Rig::ObjectCentric, width: 40, height: 30, views: 10, ..Default::default() })
 }
 
 /// A training view present in every layout.
@@ -33,9 +27,7 @@ const VIEW: &str = "view_003";
 
 fn image_path(f: Format, dir: &Path, name: &str) -> PathBuf {
     match f {
-        Format::Llff | Format::ColmapBin | Format::ColmapTxt => {
-            dir.join(format!("images/{name}.png"))
-        }
+        Format::Llff | Format::ColmapBin | Format::ColmapTxt => dir.join(format!("images/{name}.png")),
         Format::Blender => dir.join(format!("train/{name}.png")),
         Format::BlendedMvs => dir.join(format!("blended_images/{name}.png")),
         Format::Nsvf => dir.join(format!("rgb/0_{name}.png")),
@@ -141,16 +133,9 @@ fn missing_and_extra_images() {
             Format::Nsvf => "0_extra",
             _ => "extra",
         };
-        s.views[1]
-            .image
-            .save_png(&image_path(f, &dir, "extra"))
-            .unwrap();
+        s.views[1].image.save_png(&image_path(f, &dir, "extra")).unwrap();
         if f == Format::Nsvf {
-            std::fs::rename(
-                image_path(f, &dir, "extra"),
-                dir.join(format!("rgb/{extra}.png")),
-            )
-            .unwrap();
+            std::fs::rename(image_path(f, &dir, "extra"), dir.join(format!("rgb/{extra}.png"))).unwrap();
         }
         match f {
             // Layouts driven by their camera files skip images they do not list (COLMAP does not
@@ -205,12 +190,7 @@ fn nan_and_singular_poses() {
         (Format::ColmapTxt, "sparse/0/images.txt".into(), 0),
     ];
     for (f, file, tok) in text_cases {
-        let file_name = Path::new(&file)
-            .file_name()
-            .unwrap()
-            .to_str()
-            .unwrap()
-            .to_string();
+        let file_name = Path::new(&file).file_name().unwrap().to_str().unwrap().to_string();
         let dir = fresh(f, &s, "nan");
         // In COLMAP's images.txt token 0 is the image id, 1 to 4 the quaternion.
         let tok = if f == Format::ColmapTxt { 1 } else { tok };
@@ -244,24 +224,12 @@ fn nan_and_singular_poses() {
     let mut frames: Vec<FrameAnnotation> = read_jgz(&fa, "").unwrap();
     frames[3].viewpoint.as_mut().unwrap().r = [[0.0; 3]; 3];
     write_jgz(&fa, &frames).unwrap();
-    expect_err(
-        Format::Co3d,
-        &dir,
-        "singular R",
-        &["frame_annotations.jgz", "frame 3", "singular"],
-    );
-    let text = serde_json::to_string(&frames)
-        .unwrap()
-        .replacen("\"T\":[", "\"T\":[NaN,", 1);
+    expect_err(Format::Co3d, &dir, "singular R", &["frame_annotations.jgz", "frame 3", "singular"]);
+    let text = serde_json::to_string(&frames).unwrap().replacen("\"T\":[", "\"T\":[NaN,", 1);
     let mut enc = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
     std::io::Write::write_all(&mut enc, text.as_bytes()).unwrap();
     std::fs::write(&fa, enc.finish().unwrap()).unwrap();
-    expect_err(
-        Format::Co3d,
-        &dir,
-        "NaN in JSON",
-        &["frame_annotations.jgz", "malformed"],
-    );
+    expect_err(Format::Co3d, &dir, "NaN in JSON", &["frame_annotations.jgz", "malformed"]);
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -282,12 +250,7 @@ fn malformed_camera_files() {
             b"1 PINHOLE 0 30 35.0 35.0 20.0 15.0\n".to_vec(),
             vec!["cameras.txt", "zero"],
         ),
-        (
-            Format::ColmapTxt,
-            "sparse/0/cameras.txt".into(),
-            b"1 WEIRD 40 30 1\n".to_vec(),
-            vec!["cameras.txt", "WEIRD"],
-        ),
+        (Format::ColmapTxt, "sparse/0/cameras.txt".into(), b"1 WEIRD 40 30 1\n".to_vec(), vec!["cameras.txt", "WEIRD"]),
         (
             Format::ColmapTxt,
             "sparse/0/images.txt".into(),
@@ -318,36 +281,16 @@ fn malformed_camera_files() {
             b"intrinsic\n".to_vec(),
             vec!["view_003_cam.txt", "extrinsic"],
         ),
-        (
-            Format::Nsvf,
-            "intrinsics.txt".into(),
-            b"focal 35\n".to_vec(),
-            vec!["intrinsics.txt", "\"focal\""],
-        ),
-        (
-            Format::Nsvf,
-            "bbox.txt".into(),
-            b"-1 -1 -1 1 1\n".to_vec(),
-            vec!["bbox.txt", "xmin"],
-        ),
-        (
-            Format::Nsvf,
-            "bbox.txt".into(),
-            b"1 1 1 -1 -1 -1\n".to_vec(),
-            vec!["bbox.txt", "below max"],
-        ),
+        (Format::Nsvf, "intrinsics.txt".into(), b"focal 35\n".to_vec(), vec!["intrinsics.txt", "\"focal\""]),
+        (Format::Nsvf, "bbox.txt".into(), b"-1 -1 -1 1 1\n".to_vec(), vec!["bbox.txt", "xmin"]),
+        (Format::Nsvf, "bbox.txt".into(), b"1 1 1 -1 -1 -1\n".to_vec(), vec!["bbox.txt", "below max"]),
         (
             Format::TanksTemples,
             format!("train/intrinsics/{VIEW}.txt"),
             b"35 0 20\n0 35 15\n0 0 1\n0 0 0\n".to_vec(),
             vec!["view_003.txt", "12 numbers"],
         ),
-        (
-            Format::TanksTemples,
-            format!("train/pose/{VIEW}.txt"),
-            b"".to_vec(),
-            vec!["view_003.txt", "0 numbers"],
-        ),
+        (Format::TanksTemples, format!("train/pose/{VIEW}.txt"), b"".to_vec(), vec!["view_003.txt", "0 numbers"]),
         (
             Format::Co3d,
             format!("{CO3D_CATEGORY}/frame_annotations.jgz"),
@@ -370,12 +313,7 @@ fn malformed_camera_files() {
     for (f, file, contents, needles) in cases {
         let dir = fresh(f, &s, "malformed");
         std::fs::write(dir.join(&file), &contents).unwrap();
-        expect_err(
-            f,
-            &dir,
-            &format!("{file} = {:?}", String::from_utf8_lossy(&contents)),
-            &needles,
-        );
+        expect_err(f, &dir, &format!("{file} = {:?}", String::from_utf8_lossy(&contents)), &needles);
         std::fs::remove_dir_all(&dir).ok();
     }
     // Truncating any binary or gzip file at any of a few points is an error naming it.
@@ -398,51 +336,28 @@ fn malformed_camera_files() {
     // Missing annotation or model files are `Missing` errors naming them.
     let dir = fresh(Format::Co3d, &s, "missing-seq");
     std::fs::remove_file(dir.join("synthetic/sequence_annotations.jgz")).unwrap();
-    let err = expect_err(
-        Format::Co3d,
-        &dir,
-        "no sequence annotations",
-        &["sequence_annotations.jgz", "missing"],
-    );
+    let err = expect_err(Format::Co3d, &dir, "no sequence annotations", &["sequence_annotations.jgz", "missing"]);
     assert!(matches!(err, DatasetError::Missing { .. }));
     std::fs::remove_dir_all(&dir).ok();
     let dir = fresh(Format::ColmapBin, &s, "missing-images-bin");
     std::fs::remove_file(dir.join("sparse/0/images.bin")).unwrap();
-    expect_err(
-        Format::ColmapBin,
-        &dir,
-        "no images.bin",
-        &["images.bin", "missing"],
-    );
+    expect_err(Format::ColmapBin, &dir, "no images.bin", &["images.bin", "missing"]);
     std::fs::remove_dir_all(&dir).ok();
 }
 
 /// The path the CLI takes: a `[scene]` table parsed into the registered kind, then opened.
 #[test]
 fn every_kind_opens_from_toml_and_reports_the_folder() {
-    for kind in [
-        "llff",
-        "blender",
-        "colmap",
-        "blendedmvs",
-        "co3d",
-        "tanks-temples",
-    ] {
+    for kind in ["llff", "blender", "colmap", "blendedmvs", "co3d", "tanks-temples"] {
         let toml = format!("kind = \"{kind}\"\npath = \"no-such-scene\"");
-        let cfg: Box<dyn DatasetConfig> =
-            toml::from_str(&toml).unwrap_or_else(|e| panic!("{kind}: {e}"));
+        let cfg: Box<dyn DatasetConfig> = toml::from_str(&toml).unwrap_or_else(|e| panic!("{kind}: {e}"));
         let err = cfg.open(Path::new("/nonexistent-root")).unwrap_err();
         assert!(matches!(err, DatasetError::Missing { .. }), "{kind}: {err}");
         assert!(err.to_string().contains("no-such-scene"), "{kind}: {err}");
-        assert!(
-            sos_core::registry::find::<dyn DatasetConfig>(kind).is_some(),
-            "{kind}"
-        );
+        assert!(sos_core::registry::find::<dyn DatasetConfig>(kind).is_some(), "{kind}");
         // Unknown keys are refused with the key's name.
         let typo = format!("kind = \"{kind}\"\npathh = \"x\"");
-        let err = toml::from_str::<Box<dyn DatasetConfig>>(&typo)
-            .unwrap_err()
-            .to_string();
+        let err = toml::from_str::<Box<dyn DatasetConfig>>(&typo).unwrap_err().to_string();
         assert!(err.contains("pathh"), "{kind}: {err}");
     }
 }

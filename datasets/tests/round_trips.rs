@@ -11,8 +11,7 @@ use sos_datasets::co3d::{read_jgz, write_jgz, FrameAnnotation, SequenceAnnotatio
 use sos_datasets::layouts::{Format, CO3D_CATEGORY, CO3D_SEQUENCE};
 use sos_datasets::synthetic::{generate, Rig, SyntheticConfig, OBJECT_CENTRE, OBJECT_RADIUS, ROOM_MAX, ROOM_MIN};
 use sos_datasets::{
-    load_co3d, load_colmap, load_llff, load_tanks_temples, Co3dConfig, ColmapConfig, LlffConfig,
-    TanksTemplesConfig,
+    load_co3d, load_colmap, load_llff, load_tanks_temples, Co3dConfig, ColmapConfig, LlffConfig, TanksTemplesConfig,
 };
 
 fn temp_dir(name: &str) -> PathBuf {
@@ -23,13 +22,7 @@ fn temp_dir(name: &str) -> PathBuf {
 }
 
 fn scene(rig: Rig) -> Scene {
-    generate(&SyntheticConfig {
-        rig,
-        width: 64,
-        height: 48,
-        views: 16,
-        ..Default::default()
-    })
+    generate(&SyntheticConfig { rig, width: 64, height: 48, views: 16, ..Default::default() })
 }
 
 const ROOM: [[f32; 3]; 2] = [ROOM_MIN, ROOM_MAX];
@@ -38,27 +31,14 @@ const ROOM: [[f32; 3]; 2] = [ROOM_MIN, ROOM_MAX];
 /// intrinsics to 1e-4 px, images to 8-bit rounding, identical masks, the same rays and the
 /// same held-out views.
 fn assert_same_views(original: &Scene, loaded: &Scene, what: &str) {
-    loaded
-        .validate()
-        .unwrap_or_else(|e| panic!("{what}: invalid scene: {e}"));
-    assert_eq!(
-        original.views.len(),
-        loaded.views.len(),
-        "{what}: view count"
-    );
+    loaded.validate().unwrap_or_else(|e| panic!("{what}: invalid scene: {e}"));
+    assert_eq!(original.views.len(), loaded.views.len(), "{what}: view count");
     for o in &original.views {
         // Blender names views by their path, e.g. `train_view_001`.
-        let same = |l: &str| {
-            l == o.name
-                || ["train_", "test_"]
-                    .iter()
-                    .any(|p| l.strip_prefix(p) == Some(o.name.as_str()))
-        };
-        let l = loaded
-            .views
-            .iter()
-            .find(|l| same(&l.name))
-            .unwrap_or_else(|| panic!("{what}: view {} not loaded", o.name));
+        let same =
+            |l: &str| l == o.name || ["train_", "test_"].iter().any(|p| l.strip_prefix(p) == Some(o.name.as_str()));
+        let l =
+            loaded.views.iter().find(|l| same(&l.name)).unwrap_or_else(|| panic!("{what}: view {} not loaded", o.name));
         let (a, b) = (&o.camera, &l.camera);
         let pose_err = a
             .cam_to_world
@@ -67,36 +47,13 @@ fn assert_same_views(original: &Scene, loaded: &Scene, what: &str) {
             .zip(b.cam_to_world.iter().flatten())
             .map(|(x, y)| (x - y).abs())
             .fold(0.0, f32::max);
-        assert!(
-            pose_err <= 1e-6,
-            "{what}: view {}: pose differs by {pose_err}",
-            o.name
-        );
-        assert_eq!(
-            (a.width, a.height),
-            (b.width, b.height),
-            "{what}: {}",
-            o.name
-        );
+        assert!(pose_err <= 1e-6, "{what}: view {}: pose differs by {pose_err}", o.name);
+        assert_eq!((a.width, a.height), (b.width, b.height), "{what}: {}", o.name);
         for (x, y) in [(a.fx, b.fx), (a.fy, b.fy), (a.cx, b.cx), (a.cy, b.cy)] {
-            assert!(
-                (x - y).abs() < 1e-4,
-                "{what}: view {}: intrinsics {a:?} vs {b:?}",
-                o.name
-            );
+            assert!((x - y).abs() < 1e-4, "{what}: view {}: intrinsics {a:?} vs {b:?}", o.name);
         }
-        let img_err = o
-            .image
-            .data
-            .iter()
-            .zip(&l.image.data)
-            .map(|(p, q)| (p - q).abs())
-            .fold(0.0, f32::max);
-        assert!(
-            img_err <= 0.5 / 255.0 + 1e-5,
-            "{what}: view {}: colour {img_err}",
-            o.name
-        );
+        let img_err = o.image.data.iter().zip(&l.image.data).map(|(p, q)| (p - q).abs()).fold(0.0, f32::max);
+        assert!(img_err <= 0.5 / 255.0 + 1e-5, "{what}: view {}: colour {img_err}", o.name);
         assert_eq!(o.mask, l.mask, "{what}: view {}: mask", o.name);
         let (ra, rb) = (RayBatch::full_image(a), RayBatch::full_image(b));
         let ray_err = ra
@@ -106,32 +63,16 @@ fn assert_same_views(original: &Scene, loaded: &Scene, what: &str) {
             .zip(rb.origins.iter().chain(&rb.directions))
             .flat_map(|(p, q)| (0..3).map(move |k| (p[k] - q[k]).abs()))
             .fold(0.0, f32::max);
-        assert!(
-            ray_err <= 1e-5,
-            "{what}: view {}: rays differ by {ray_err}",
-            o.name
-        );
+        assert!(ray_err <= 1e-5, "{what}: view {}: rays differ by {ray_err}", o.name);
     }
     let names = |s: &Scene, idx: &[usize]| {
-        let strip = |n: &str| {
-            n.trim_start_matches("train_")
-                .trim_start_matches("test_")
-                .to_string()
-        };
+        let strip = |n: &str| n.trim_start_matches("train_").trim_start_matches("test_").to_string();
         let mut n: Vec<String> = idx.iter().map(|&i| strip(&s.views[i].name)).collect();
         n.sort();
         n
     };
-    assert_eq!(
-        names(original, &original.test),
-        names(loaded, &loaded.test),
-        "{what}: test split"
-    );
-    assert_eq!(
-        names(original, &original.train),
-        names(loaded, &loaded.train),
-        "{what}: train split"
-    );
+    assert_eq!(names(original, &original.test), names(loaded, &loaded.test), "{what}: test split");
+    assert_eq!(names(original, &original.train), names(loaded, &loaded.train), "{what}: train split");
 }
 
 #[test]
@@ -141,20 +82,11 @@ fn every_layout_round_trips_the_object_centric_rig() {
     for format in Format::ALL {
         let d = dir.join(format.name());
         format.write(&s, &d).unwrap();
-        let loaded = format
-            .open_raw(&d, Some(ROOM))
-            .unwrap_or_else(|e| panic!("{format:?}: {e}"));
+        let loaded = format.open_raw(&d, Some(ROOM)).unwrap_or_else(|e| panic!("{format:?}: {e}"));
         assert_same_views(&s, &loaded, format.name());
         // Formats with no stored bounds take the configured box.
         if format != Format::Llff && format != Format::TanksTemples {
-            assert_eq!(
-                loaded.extent,
-                SceneExtent::Bounded {
-                    min: ROOM_MIN,
-                    max: ROOM_MAX
-                },
-                "{format:?}"
-            );
+            assert_eq!(loaded.extent, SceneExtent::Bounded { min: ROOM_MIN, max: ROOM_MAX }, "{format:?}");
         }
     }
     std::fs::remove_dir_all(dir).ok();
@@ -173,9 +105,7 @@ fn forward_facing_rig_round_trips_where_the_layout_can_hold_it() {
             continue;
         }
         format.write(&s, &d).unwrap();
-        let loaded = format
-            .open_raw(&d, None)
-            .unwrap_or_else(|e| panic!("{format:?}: {e}"));
+        let loaded = format.open_raw(&d, None).unwrap_or_else(|e| panic!("{format:?}: {e}"));
         assert_same_views(&s, &loaded, format.name());
     }
     std::fs::remove_dir_all(dir).ok();
@@ -190,18 +120,10 @@ fn default_extents_and_bounds() {
     let d = dir.join("colmap");
     Format::ColmapBin.write(&s, &d).unwrap();
     let loaded = Format::ColmapBin.open_raw(&d, None).unwrap();
-    let SceneExtent::Unbounded { center, radius } = loaded.extent else {
-        panic!("{:?}", loaded.extent)
-    };
+    let SceneExtent::Unbounded { center, radius } = loaded.extent else { panic!("{:?}", loaded.extent) };
     let want = sos_datasets::synthetic::OBJECT_CENTRE;
-    assert!(
-        (0..3).all(|k| (center[k] - want[k]).abs() < 1e-3),
-        "{center:?}"
-    );
-    assert!(
-        (radius - 1.15).abs() < 1e-3,
-        "half the orbit radius 2.3, got {radius}"
-    );
+    assert!((0..3).all(|k| (center[k] - want[k]).abs() < 1e-3), "{center:?}");
+    assert!((radius - 1.15).abs() < 1e-3, "half the orbit radius 2.3, got {radius}");
     assert_eq!(loaded.render_path.len(), 40);
     // NSVF's bbox.txt is the extent when it bounds an object; the room box written here holds
     // the cameras, so the capture gets COLMAP's unbounded extent instead. The original
@@ -231,31 +153,16 @@ fn nerfpp_normalisation_puts_cameras_in_the_unit_sphere() {
     let s = scene(Rig::ObjectCentric);
     let dir = temp_dir("tt");
     Format::TanksTemples.write(&s, &dir).unwrap();
-    let cfg = TanksTemplesConfig {
-        path: dir.clone(),
-        ..Default::default()
-    };
+    let cfg = TanksTemplesConfig { path: dir.clone(), ..Default::default() };
     let loaded = load_tanks_temples(&cfg, &dir).unwrap();
     loaded.validate().unwrap();
-    assert_eq!(
-        loaded.extent,
-        SceneExtent::Unbounded {
-            center: [0.0; 3],
-            radius: 1.0
-        }
-    );
+    assert_eq!(loaded.extent, SceneExtent::Unbounded { center: [0.0; 3], radius: 1.0 });
     // The mean training camera goes to the origin, the farthest to 1 / 1.1.
-    let train: Vec<[f32; 3]> = loaded
-        .train
-        .iter()
-        .map(|&i| loaded.views[i].camera.origin())
-        .collect();
+    let train: Vec<[f32; 3]> = loaded.train.iter().map(|&i| loaded.views[i].camera.origin()).collect();
     let norm = |o: &[f32; 3]| o.iter().map(|x| x * x).sum::<f32>().sqrt();
     let max = train.iter().map(norm).fold(0.0, f32::max);
     assert!((max - 1.0 / 1.1).abs() < 1e-5, "{max}");
-    let mean: Vec<f32> = (0..3)
-        .map(|k| train.iter().map(|o| o[k]).sum::<f32>() / train.len() as f32)
-        .collect();
+    let mean: Vec<f32> = (0..3).map(|k| train.iter().map(|o| o[k]).sum::<f32>() / train.len() as f32).collect();
     assert!(mean.iter().all(|m| m.abs() < 1e-5), "{mean:?}");
     // Rotations are untouched and translations follow one similarity transform.
     let (o0, l0) = (&s.views[s.train[0]].camera, &loaded.views[0].camera);
@@ -271,14 +178,7 @@ fn nerfpp_normalisation_puts_cameras_in_the_unit_sphere() {
     // Loading the normalised capture again leaves it as it is ("auto").
     let again = temp_dir("tt2");
     Format::TanksTemples.write(&loaded, &again).unwrap();
-    let twice = load_tanks_temples(
-        &TanksTemplesConfig {
-            path: again.clone(),
-            ..Default::default()
-        },
-        &again,
-    )
-    .unwrap();
+    let twice = load_tanks_temples(&TanksTemplesConfig { path: again.clone(), ..Default::default() }, &again).unwrap();
     // (The writer prefixes the file names with the index, the views being out of name order.)
     assert_eq!(twice.views.len(), loaded.views.len());
     for (a, b) in loaded.views.iter().zip(&twice.views) {
@@ -300,10 +200,7 @@ fn colmap_distortion_and_downscaled_images() {
     let dir = temp_dir("colmap");
     Format::ColmapTxt.write(&s, &dir).unwrap();
     let cams = dir.join("sparse/0/cameras.txt");
-    let cfg = ColmapConfig {
-        path: dir.clone(),
-        ..Default::default()
-    };
+    let cfg = ColmapConfig { path: dir.clone(), ..Default::default() };
     // OPENCV with zero distortion is a pinhole camera: identical result.
     edit(&cams, |t| {
         t.lines()
@@ -319,54 +216,24 @@ fn colmap_distortion_and_downscaled_images() {
     edit(&cams, |t| t.replacen(" 0 0 0 0\n", " 0.1 0 0 0\n", 1));
     let err = load_colmap(&cfg, &dir).unwrap_err().to_string();
     assert!(
-        err.contains("cameras.txt")
-            && err.contains("image_undistorter")
-            && err.contains("ignore_distortion"),
+        err.contains("cameras.txt") && err.contains("image_undistorter") && err.contains("ignore_distortion"),
         "{err}"
     );
-    let ignored = load_colmap(
-        &ColmapConfig {
-            ignore_distortion: true,
-            ..cfg.clone()
-        },
-        &dir,
-    )
-    .unwrap();
+    let ignored = load_colmap(&ColmapConfig { ignore_distortion: true, ..cfg.clone() }, &dir).unwrap();
     assert_same_views(&s, &ignored, "distortion ignored");
     // Fisheye models are always refused.
     edit(&cams, |t| t.replace(" OPENCV ", " OPENCV_FISHEYE "));
-    let err = load_colmap(
-        &ColmapConfig {
-            ignore_distortion: true,
-            ..cfg.clone()
-        },
-        &dir,
-    )
-    .unwrap_err()
-    .to_string();
+    let err = load_colmap(&ColmapConfig { ignore_distortion: true, ..cfg.clone() }, &dir).unwrap_err().to_string();
     assert!(err.contains("fisheye"), "{err}");
     // Back to PINHOLE; a half-size copy of the images scales the intrinsics; an image the model
     // does not register is skipped.
     Format::ColmapTxt.write(&s, &dir).unwrap();
     for v in &s.views {
-        v.image
-            .resized(32, 24)
-            .save_png(&dir.join(format!("half/{}.png", v.name)))
-            .unwrap();
+        v.image.resized(32, 24).save_png(&dir.join(format!("half/{}.png", v.name))).unwrap();
     }
-    s.views[0]
-        .image
-        .save_png(&dir.join("images/unregistered.png"))
-        .unwrap();
+    s.views[0].image.save_png(&dir.join("images/unregistered.png")).unwrap();
     std::fs::remove_dir_all(dir.join("masks")).unwrap();
-    let half = load_colmap(
-        &ColmapConfig {
-            images: "half".into(),
-            ..cfg.clone()
-        },
-        &dir,
-    )
-    .unwrap();
+    let half = load_colmap(&ColmapConfig { images: "half".into(), ..cfg.clone() }, &dir).unwrap();
     half.validate().unwrap();
     assert_eq!(half.views.len(), s.views.len());
     let (h, o) = (&half.views[3].camera, &s.views[3].camera);
@@ -383,18 +250,12 @@ fn co3d_intrinsics_formats_and_sequence_choice() {
     // ndc_norm_image_bounds differs from ndc_isotropic on non-square images.
     sos_datasets::write_co3d(&s, &dir, CO3D_CATEGORY, CO3D_SEQUENCE, false).unwrap();
     let root = dir.join(CO3D_CATEGORY);
-    let cfg = Co3dConfig {
-        path: root.clone(),
-        ..Default::default()
-    };
+    let cfg = Co3dConfig { path: root.clone(), ..Default::default() };
     let loaded = load_co3d(&cfg, &root).unwrap();
     assert_same_views(&s, &loaded, "co3d ndc_norm_image_bounds");
     let frames_path = root.join("frame_annotations.jgz");
     let frames: Vec<FrameAnnotation> = read_jgz(&frames_path, "").unwrap();
-    assert_eq!(
-        frames[0].viewpoint.as_ref().unwrap().intrinsics_format,
-        "ndc_norm_image_bounds"
-    );
+    assert_eq!(frames[0].viewpoint.as_ref().unwrap().intrinsics_format, "ndc_norm_image_bounds");
     // A second, better-scored sequence (the same frames shifted by one metre along x) is chosen
     // by default; `sequence` picks the first again.
     let mut all = frames.clone();
@@ -421,33 +282,12 @@ fn co3d_intrinsics_formats_and_sequence_choice() {
     assert_eq!(best.name, "seq_001");
     for (a, b) in s.views.iter().zip(&best.views) {
         let (oa, ob) = (a.camera.origin(), b.camera.origin());
-        assert!(
-            (ob[0] - (oa[0] + 1.0)).abs() < 1e-5 && (ob[1] - oa[1]).abs() < 1e-5,
-            "{oa:?} {ob:?}"
-        );
+        assert!((ob[0] - (oa[0] + 1.0)).abs() < 1e-5 && (ob[1] - oa[1]).abs() < 1e-5, "{oa:?} {ob:?}");
     }
-    let first = load_co3d(
-        &Co3dConfig {
-            sequence: Some(CO3D_SEQUENCE.into()),
-            ..cfg.clone()
-        },
-        &root,
-    )
-    .unwrap();
+    let first = load_co3d(&Co3dConfig { sequence: Some(CO3D_SEQUENCE.into()), ..cfg.clone() }, &root).unwrap();
     assert_same_views(&s, &first, "co3d chosen sequence");
-    let err = load_co3d(
-        &Co3dConfig {
-            sequence: Some("nope".into()),
-            ..cfg.clone()
-        },
-        &root,
-    )
-    .unwrap_err()
-    .to_string();
-    assert!(
-        err.contains("frame_annotations.jgz") && err.contains("seq_001"),
-        "{err}"
-    );
+    let err = load_co3d(&Co3dConfig { sequence: Some("nope".into()), ..cfg.clone() }, &root).unwrap_err().to_string();
+    assert!(err.contains("frame_annotations.jgz") && err.contains("seq_001"), "{err}");
     std::fs::remove_dir_all(dir).ok();
 }
 
@@ -458,21 +298,11 @@ fn co3d_soft_masks_are_thresholded_at_one_half() {
     Format::Co3d.write(&s, &dir).unwrap();
     let root = dir.join(CO3D_CATEGORY);
     // Soften mask 2: foreground 0.6, background 0.4.
-    let path = root
-        .join(CO3D_SEQUENCE)
-        .join("masks")
-        .join(format!("{}.png", s.views[2].name));
+    let path = root.join(CO3D_SEQUENCE).join("masks").join(format!("{}.png", s.views[2].name));
     let mut soft = s.views[2].mask.clone().unwrap();
     soft.data.iter_mut().for_each(|v| *v = 0.4 + 0.2 * *v);
     soft.save_png(&path).unwrap();
-    let loaded = load_co3d(
-        &Co3dConfig {
-            path: root.clone(),
-            ..Default::default()
-        },
-        &root,
-    )
-    .unwrap();
+    let loaded = load_co3d(&Co3dConfig { path: root.clone(), ..Default::default() }, &root).unwrap();
     assert_eq!(loaded.views[2].mask, s.views[2].mask);
     std::fs::remove_dir_all(dir).ok();
 }
@@ -499,50 +329,25 @@ fn llff_spherify_centres_a_360_capture() {
     let s = scene(Rig::ObjectCentric);
     let dir = temp_dir("sph");
     Format::Llff.write(&s, &dir).unwrap();
-    let cfg = LlffConfig {
-        path: dir.clone(),
-        factor: Some(1),
-        spherify: Some(true),
-        ..Default::default()
-    };
+    let cfg = LlffConfig { path: dir.clone(), factor: Some(1), spherify: Some(true), ..Default::default() };
     let loaded = load_llff(&cfg, &dir).unwrap();
     loaded.validate().unwrap();
-    assert_eq!(
-        loaded.extent,
-        SceneExtent::Unbounded {
-            center: [0.0; 3],
-            radius: 1.0
-        }
-    );
+    assert_eq!(loaded.extent, SceneExtent::Unbounded { center: [0.0; 3], radius: 1.0 });
     // Cameras at RMS distance 1 from the origin, every viewing axis through it (the generator's
     // cameras all look at the object centre).
     let n = loaded.views.len() as f32;
-    let rms = (loaded
-        .views
-        .iter()
-        .map(|v| v.camera.origin().iter().map(|x| x * x).sum::<f32>())
-        .sum::<f32>()
-        / n)
-        .sqrt();
+    let rms =
+        (loaded.views.iter().map(|v| v.camera.origin().iter().map(|x| x * x).sum::<f32>()).sum::<f32>() / n).sqrt();
     assert!((rms - 1.0).abs() < 1e-5, "{rms}");
     for v in &loaded.views {
         let (o, f) = (v.camera.origin(), v.camera.forward());
         let t = -(0..3).map(|k| o[k] * f[k]).sum::<f32>();
         let closest: Vec<f32> = (0..3).map(|k| o[k] + t * f[k]).collect();
-        assert!(
-            closest.iter().all(|c| c.abs() < 1e-4),
-            "view {}: {closest:?}",
-            v.name
-        );
+        assert!(closest.iter().all(|c| c.abs() < 1e-4), "view {}: {closest:?}", v.name);
     }
     assert_eq!(loaded.render_path.len(), 120);
     let (a, b) = (&loaded.render_path[0], &loaded.render_path[119]);
-    assert!(a
-        .cam_to_world
-        .iter()
-        .flatten()
-        .zip(b.cam_to_world.iter().flatten())
-        .all(|(x, y)| (x - y).abs() < 1e-5));
+    assert!(a.cam_to_world.iter().flatten().zip(b.cam_to_world.iter().flatten()).all(|(x, y)| (x - y).abs() < 1e-5));
     assert!(loaded.near > 0.0);
     std::fs::remove_dir_all(dir).ok();
 }
@@ -563,19 +368,12 @@ const FLOWER_POSE_33: [[f64; 4]; 3] = [
 
 #[test]
 fn llff_flower_poses_match_the_reference_loader() {
-    let npy =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../fixtures/llff_flower/poses_bounds.npy");
+    let npy = Path::new(env!("CARGO_MANIFEST_DIR")).join("../fixtures/llff_flower/poses_bounds.npy");
     let geo = sos_datasets::llff::read_llff_geometry(&LlffConfig::default(), &npy).unwrap();
     assert_eq!(geo.poses.len(), 34);
-    for (got, want, i) in [
-        (&geo.poses[0], &FLOWER_POSE_0, 0),
-        (&geo.poses[33], &FLOWER_POSE_33, 33),
-    ] {
+    for (got, want, i) in [(&geo.poses[0], &FLOWER_POSE_0, 0), (&geo.poses[33], &FLOWER_POSE_33, 33)] {
         for (g, w) in got.iter().flatten().zip(want.iter().flatten()) {
-            assert!(
-                (g - w).abs() < 2e-6,
-                "camera {i}: {got:?} vs reference {want:?}"
-            );
+            assert!((g - w).abs() < 2e-6, "camera {i}: {got:?} vs reference {want:?}");
         }
     }
     assert!((0.9 * geo.bounds[0] - 1.2).abs() < 1e-6, "{:?}", geo.bounds);
@@ -594,23 +392,18 @@ fn synthetic_layout_configs_load_the_written_layouts() {
     let tmp = temp_dir("configs");
     let s = scene(Rig::ObjectCentric);
     for f in Format::ALL {
-        f.write(&s, &tmp.join("runs/layouts").join(f.name()))
-            .unwrap();
+        f.write(&s, &tmp.join("runs/layouts").join(f.name())).unwrap();
     }
     let config_dir = tmp.join("configs");
     std::fs::create_dir_all(&config_dir).unwrap();
     for f in Format::ALL {
         let file = repo.join(format!("configs/synthetic_{}.toml", f.name()));
-        let text =
-            std::fs::read_to_string(&file).unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+        let text = std::fs::read_to_string(&file).unwrap_or_else(|e| panic!("{}: {e}", file.display()));
         let doc: toml::Table = toml::from_str(&text).unwrap();
         let table = doc["scene"].clone();
-        let cfg: Box<dyn sos_core::plugin::dataset::DatasetConfig> = table
-            .try_into()
-            .unwrap_or_else(|e| panic!("{}: {e}", file.display()));
-        let loaded = cfg
-            .open(&config_dir)
-            .unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+        let cfg: Box<dyn sos_core::plugin::dataset::DatasetConfig> =
+            table.try_into().unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+        let loaded = cfg.open(&config_dir).unwrap_or_else(|e| panic!("{}: {e}", file.display()));
         assert_same_views_up_to_frame(&s, &loaded, f);
     }
     std::fs::remove_dir_all(tmp).ok();
@@ -624,10 +417,7 @@ fn assert_same_views_up_to_frame(original: &Scene, loaded: &Scene, f: Format) {
             loaded.validate().unwrap();
             assert_eq!(loaded.views.len(), original.views.len(), "{f:?}");
             assert_eq!(loaded.test.len(), original.test.len(), "{f:?}");
-            assert!(
-                matches!(loaded.extent, SceneExtent::Unbounded { radius, .. } if radius == 1.0),
-                "{f:?}"
-            );
+            assert!(matches!(loaded.extent, SceneExtent::Unbounded { radius, .. } if radius == 1.0), "{f:?}");
         }
         // The configs set no bounds: every layout gets the unbounded extent around the
         // cameras' focus, whose foreground sphere holds the object.
@@ -657,16 +447,8 @@ fn nsvf_split_prefixes() {
     Format::Nsvf.write(&s, &dir).unwrap();
     let test_names: Vec<String> = s.test.iter().map(|&i| s.views[i].name.clone()).collect();
     let copy = |from: &str, to: &str| {
-        std::fs::copy(
-            dir.join(format!("rgb/{from}.png")),
-            dir.join(format!("rgb/{to}.png")),
-        )
-        .unwrap();
-        std::fs::copy(
-            dir.join(format!("pose/{from}.txt")),
-            dir.join(format!("pose/{to}.txt")),
-        )
-        .unwrap();
+        std::fs::copy(dir.join(format!("rgb/{from}.png")), dir.join(format!("rgb/{to}.png"))).unwrap();
+        std::fs::copy(dir.join(format!("pose/{from}.txt")), dir.join(format!("pose/{to}.txt"))).unwrap();
     };
     copy("0_view_003", "1_val_003");
     let loaded = Format::Nsvf.open_raw(&dir, None).unwrap();
@@ -680,17 +462,9 @@ fn nsvf_split_prefixes() {
         }
     }
     let loaded = Format::Nsvf.open_raw(&dir, None).unwrap();
-    let mut held: Vec<&str> = loaded
-        .test
-        .iter()
-        .map(|&i| loaded.views[i].name.as_str())
-        .collect();
+    let mut held: Vec<&str> = loaded.test.iter().map(|&i| loaded.views[i].name.as_str()).collect();
     held.sort();
-    let mut want: Vec<&str> = test_names
-        .iter()
-        .map(|n| n.as_str())
-        .chain(["val_003"])
-        .collect();
+    let mut want: Vec<&str> = test_names.iter().map(|n| n.as_str()).chain(["val_003"]).collect();
     want.sort();
     assert_eq!(held, want);
     std::fs::remove_dir_all(dir).ok();
@@ -716,23 +490,14 @@ fn general_intrinsics_survive_where_the_layout_holds_them() {
             continue;
         }
         f.write(&s, &d).unwrap();
-        let loaded = f
-            .open_raw(&d, Some(ROOM))
-            .unwrap_or_else(|e| panic!("{f:?}: {e}"));
+        let loaded = f.open_raw(&d, Some(ROOM)).unwrap_or_else(|e| panic!("{f:?}: {e}"));
         assert_same_views(&s, &loaded, f.name());
     }
     // Both CO3D intrinsics formats.
     let d = dir.join("co3d-bounds");
     sos_datasets::write_co3d(&s, &d, CO3D_CATEGORY, CO3D_SEQUENCE, false).unwrap();
     let root = d.join(CO3D_CATEGORY);
-    let loaded = load_co3d(
-        &Co3dConfig {
-            path: root.clone(),
-            ..Default::default()
-        },
-        &root,
-    )
-    .unwrap();
+    let loaded = load_co3d(&Co3dConfig { path: root.clone(), ..Default::default() }, &root).unwrap();
     assert_same_views(&s, &loaded, "co3d ndc_norm_image_bounds");
     std::fs::remove_dir_all(dir).ok();
 }
@@ -746,44 +511,19 @@ fn file_conventions_match_hand_written_cameras() {
     // Every camera sits at world (0, 0, -5) looking along world +Z; image 100x80.
     let check = |what: &str, cam: sos_core::camera::Camera, right: [f32; 3], down: [f32; 3]| {
         let c = cam.project([0.0, 0.0, 0.0]).unwrap();
-        assert!(
-            (c[0] - cam.cx).abs() < 1e-4 && (c[1] - cam.cy).abs() < 1e-4,
-            "{what}: {c:?}"
-        );
+        assert!((c[0] - cam.cx).abs() < 1e-4 && (c[1] - cam.cy).abs() < 1e-4, "{what}: {c:?}");
         let r = cam.project(right).unwrap();
-        assert!(
-            r[0] > c[0] + 1.0 && (r[1] - c[1]).abs() < 1e-4,
-            "{what}: {right:?} → {r:?}"
-        );
+        assert!(r[0] > c[0] + 1.0 && (r[1] - c[1]).abs() < 1e-4, "{what}: {right:?} → {r:?}");
         let d = cam.project(down).unwrap();
-        assert!(
-            d[1] > c[1] + 1.0 && (d[0] - c[0]).abs() < 1e-4,
-            "{what}: {down:?} → {d:?}"
-        );
+        assert!(d[1] > c[1] + 1.0 && (d[0] - c[0]).abs() < 1e-4, "{what}: {down:?} → {d:?}");
     };
     // OpenCV world-to-camera (COLMAP, BlendedMVS): identity rotation, t = (0, 0, 5): camera x
     // is world +X (right), camera y world +Y (down).
-    let p = from_world_to_camera(
-        &rotation_from_quaternion([1.0, 0.0, 0.0, 0.0]),
-        [0.0, 0.0, 5.0],
-    )
-    .unwrap();
-    check(
-        "opencv w2c",
-        to_camera_general(&p, 100, 80, 50.0, 50.0, 50.0, 40.0),
-        [1.0, 0.0, 0.0],
-        [0.0, 1.0, 0.0],
-    );
+    let p = from_world_to_camera(&rotation_from_quaternion([1.0, 0.0, 0.0, 0.0]), [0.0, 0.0, 5.0]).unwrap();
+    check("opencv w2c", to_camera_general(&p, 100, 80, 50.0, 50.0, 50.0, 40.0), [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]);
     // NeRF++ / NSVF camera-to-world, OpenCV axes.
-    let p =
-        tanks_temples::parse_c2w_opencv(Path::new("p.txt"), "1 0 0 0\n0 1 0 0\n0 0 1 -5\n0 0 0 1")
-            .unwrap();
-    check(
-        "opencv c2w",
-        to_camera_general(&p, 100, 80, 50.0, 50.0, 50.0, 40.0),
-        [1.0, 0.0, 0.0],
-        [0.0, 1.0, 0.0],
-    );
+    let p = tanks_temples::parse_c2w_opencv(Path::new("p.txt"), "1 0 0 0\n0 1 0 0\n0 0 1 -5\n0 0 0 1").unwrap();
+    check("opencv c2w", to_camera_general(&p, 100, 80, 50.0, 50.0, 50.0, 40.0), [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]);
     // PyTorch3D: X_cam = X_world·R + T with R = I, T = (0, 0, 5): +X left, +Y up, +Z forward,
     // so world +X appears on the left and world −Y below the centre.
     let json = r#"[{"sequence_name": "s", "frame_number": 0,
@@ -795,17 +535,9 @@ fn file_conventions_match_hand_written_cameras() {
     let vp = frames[0].viewpoint.as_ref().unwrap();
     let k = co3d::intrinsics_from_ndc(vp, frames[0].image.size).unwrap();
     // Isotropic: the shorter side (80 px) spans NDC [−1, 1], so s = 40 px; NDC +X is left.
-    assert_eq!(
-        (k.fx, k.fy, k.cx, k.cy),
-        (50.0, 50.0, 50.0 - 4.0, 40.0 + 2.0)
-    );
+    assert_eq!((k.fx, k.fy, k.cx, k.cy), (50.0, 50.0, 50.0 - 4.0, 40.0 + 2.0));
     let p = co3d::pose_from_pytorch3d(&vp.r, vp.t).unwrap();
-    check(
-        "pytorch3d",
-        to_camera_general(&p, 100, 80, k.fx, k.fy, k.cx, k.cy),
-        [-1.0, 0.0, 0.0],
-        [0.0, -1.0, 0.0],
-    );
+    check("pytorch3d", to_camera_general(&p, 100, 80, k.fx, k.fy, k.cx, k.cy), [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]);
     // A point on PyTorch3D's principal point lands on the pixel principal point: NDC
     // (px, py) = (0.1, −0.05) is left of and below the image centre.
     assert!(k.cx < 50.0 && k.cy > 40.0);

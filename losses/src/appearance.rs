@@ -145,9 +145,7 @@ impl BilinearTaps {
         assert_eq!(grid.len(), channels * hw, "BilinearTaps::sample: grid is not [C,h,w]");
         let mut out = Vec::with_capacity(channels * self.len());
         for plane in grid.chunks_exact(hw) {
-            out.extend(
-                self.taps.iter().map(|t| t.iter().map(|&(i, w)| w * f64::from(plane[i])).sum::<f64>()),
-            );
+            out.extend(self.taps.iter().map(|t| t.iter().map(|&(i, w)| w * f64::from(plane[i])).sum::<f64>()));
         }
         out
     }
@@ -279,10 +277,8 @@ pub fn stego_helper(
                 ga[c * m + p] = acc;
             }
         }
-        grad_sa[k * ssz..(k + 1) * ssz]
-            .copy_from_slice(&l2_normalize_backward(&a, &da, &ga, c_seg, m, NORM_EPS));
-        grad_sb[k * ssz..(k + 1) * ssz]
-            .copy_from_slice(&l2_normalize_backward(&b, &db, &gb, c_seg, m, NORM_EPS));
+        grad_sa[k * ssz..(k + 1) * ssz].copy_from_slice(&l2_normalize_backward(&a, &da, &ga, c_seg, m, NORM_EPS));
+        grad_sb[k * ssz..(k + 1) * ssz].copy_from_slice(&l2_normalize_backward(&b, &db, &gb, c_seg, m, NORM_EPS));
     }
     HelperOutput { loss: loss / total, grad_sa, grad_sb }
 }
@@ -600,9 +596,7 @@ mod tests {
         let u1 = uniform_points(3 * 9, &mut rng);
         let u2 = uniform_points(3 * 9, &mut rng);
         let cfg = AppearanceConfig { identity_weight: 0.7, negative_weight: 1.3, ..Default::default() };
-        let eval = |l: &[f32]| {
-            appearance_loss(&cfg, &features, l, shape, &neg, &u1, &u2, 1.0, None).total
-        };
+        let eval = |l: &[f32]| appearance_loss(&cfg, &features, l, shape, &neg, &u1, &u2, 1.0, None).total;
         let mut grad = vec![0.0f32; logits.len()];
         appearance_loss(&cfg, &features, &logits, shape, &neg, &u1, &u2, 1.0, Some(&mut grad));
         let scale = grad.iter().fold(0.0f32, |m, g| m.max(g.abs()));
@@ -637,10 +631,7 @@ mod tests {
         assert_eq!(format!("{back:?}"), format!("{cfg:?}"));
         let partial: Box<dyn ContrastiveLossConfig> =
             toml::from_str("kind = \"appearance\"\nsamples = 5\n").expect("defaults fill in");
-        assert_eq!(
-            format!("{partial:?}"),
-            format!("{:?}", AppearanceConfig { samples: 5, ..Default::default() })
-        );
+        assert_eq!(format!("{partial:?}"), format!("{:?}", AppearanceConfig { samples: 5, ..Default::default() }));
         assert!(toml::from_str::<Box<dyn ContrastiveLossConfig>>("kind = \"appearance\"\nsample = 5\n").is_err());
         let zero: Box<dyn ContrastiveLossConfig> =
             toml::from_str("kind = \"appearance\"\nsamples = 0\n").expect("parse");

@@ -56,18 +56,12 @@ impl Default for ClsCosineMiner {
 /// Vectors of different lengths are compared over their common prefix.
 pub fn cosine_matrix(vectors: &[Vec<f32>], eps: f64) -> Vec<f64> {
     let n = vectors.len();
-    let norms: Vec<f64> = vectors
-        .iter()
-        .map(|v| v.iter().map(|&x| f64::from(x) * f64::from(x)).sum::<f64>().sqrt().max(eps))
-        .collect();
+    let norms: Vec<f64> =
+        vectors.iter().map(|v| v.iter().map(|&x| f64::from(x) * f64::from(x)).sum::<f64>().sqrt().max(eps)).collect();
     let mut m = vec![0.0f64; n * n];
     for i in 0..n {
         for j in 0..n {
-            let dot: f64 = vectors[i]
-                .iter()
-                .zip(&vectors[j])
-                .map(|(&a, &b)| f64::from(a) * f64::from(b))
-                .sum();
+            let dot: f64 = vectors[i].iter().zip(&vectors[j]).map(|(&a, &b)| f64::from(a) * f64::from(b)).sum();
             m[i * n + j] = dot / (norms[i] * norms[j]);
         }
     }
@@ -142,8 +136,7 @@ mod tests {
         assert_eq!(format!("{back:?}"), format!("{cfg:?}"));
         let err = toml::from_str::<Box<dyn PairMinerConfig>>("kind = \"cls-cosine\"\nepz = 1.0\n");
         assert!(err.is_err(), "unknown key accepted");
-        let bad: Box<dyn PairMinerConfig> =
-            toml::from_str("kind = \"cls-cosine\"\neps = 0.0\n").expect("parse");
+        let bad: Box<dyn PairMinerConfig> = toml::from_str("kind = \"cls-cosine\"\neps = 0.0\n").expect("parse");
         assert!(matches!(bad.build(), Err(BuildError::Invalid { .. })));
         assert!(sos_core::registry::find::<dyn PairMinerConfig>(KIND).is_some());
     }

@@ -15,8 +15,7 @@ impl Fixture {
 
     pub(crate) fn geometry() -> Self {
         Fixture(
-            serde_json::from_str(include_str!("../../fixtures/losses/geometry.json"))
-                .expect("geometry fixture parses"),
+            serde_json::from_str(include_str!("../../fixtures/losses/geometry.json")).expect("geometry fixture parses"),
         )
     }
 

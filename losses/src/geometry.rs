@@ -150,13 +150,7 @@ pub fn clip_depth(depth: &mut [f32], clip: f32) {
 ///
 /// # Panics
 /// If the buffers do not match `n_patches` and `pixels` (= `P²`).
-pub fn points_from_depth(
-    depth: &[f32],
-    rays_o: &[f32],
-    rays_d: &[f32],
-    n_patches: usize,
-    pixels: usize,
-) -> Vec<f32> {
+pub fn points_from_depth(depth: &[f32], rays_o: &[f32], rays_d: &[f32], n_patches: usize, pixels: usize) -> Vec<f32> {
     assert_eq!(depth.len(), n_patches * pixels, "points_from_depth: depth is not [n,1,P,P]");
     assert_eq!(rays_o.len(), 3 * n_patches * pixels, "points_from_depth: rays_o is not [n,3,P,P]");
     assert_eq!(rays_d.len(), 3 * n_patches * pixels, "points_from_depth: rays_d is not [n,3,P,P]");
@@ -561,15 +555,7 @@ impl ContrastiveLoss for GeometryLoss {
         grad_logits: &mut [f32],
     ) -> LossValue {
         let shape = PatchShape { n_patches: batch.n_patches, d_seg: batch.d_seg, patch: batch.patch };
-        geometry_loss(
-            &self.config,
-            batch.points,
-            batch.logits,
-            shape,
-            batch.negatives,
-            grad_scale,
-            Some(grad_logits),
-        )
+        geometry_loss(&self.config, batch.points, batch.logits, shape, batch.negatives, grad_scale, Some(grad_logits))
     }
 }
 
@@ -580,7 +566,15 @@ mod tests {
     use rand::{Rng, SeedableRng};
 
     /// Straightforward f64 version with the full `[n, m, m]` matrices.
-    fn naive_term(points: &[f64], logits: &[f64], shape: PatchShape, partner: &[usize], shift: f64, eps: f64, cap: f64) -> f64 {
+    fn naive_term(
+        points: &[f64],
+        logits: &[f64],
+        shape: PatchShape,
+        partner: &[usize],
+        shift: f64,
+        eps: f64,
+        cap: f64,
+    ) -> f64 {
         let (n, d, m) = (shape.n_patches, shape.d_seg, shape.pixels());
         let kern = |l1: f64| (1.0 / (l1 + eps)).min(cap);
         let mut shat = Vec::new();
@@ -718,7 +712,8 @@ mod tests {
         let identity: Vec<usize> = (0..3).collect();
         let eval = |lg: &[f64]| {
             cfg.negative_weight * naive_term(&pts, lg, case.shape, &case.neg, cfg.negative_shift, cfg.epsilon, cfg.cap)
-                + cfg.identity_weight * naive_term(&pts, lg, case.shape, &identity, cfg.identity_shift, cfg.epsilon, cfg.cap)
+                + cfg.identity_weight
+                    * naive_term(&pts, lg, case.shape, &identity, cfg.identity_shift, cfg.epsilon, cfg.cap)
         };
         let mut grad = vec![0.5f32; case.logits.len()];
         geometry_loss(&cfg, &case.points, &case.logits, case.shape, &case.neg, 2.0, Some(&mut grad));
@@ -752,7 +747,15 @@ mod tests {
         let mut g1 = vec![0.0f32; case.logits.len()];
         let v1 = loss.loss_and_grad(&batch, &mut rand::rngs::StdRng::seed_from_u64(0), 1.0, &mut g1);
         let mut g2 = vec![0.0f32; case.logits.len()];
-        let v2 = geometry_loss(&GeometryConfig::default(), &case.points, &case.logits, case.shape, &case.neg, 1.0, Some(&mut g2));
+        let v2 = geometry_loss(
+            &GeometryConfig::default(),
+            &case.points,
+            &case.logits,
+            case.shape,
+            &case.neg,
+            1.0,
+            Some(&mut g2),
+        );
         assert_eq!(v1, v2);
         assert_eq!(g1, g2);
         assert_eq!(v1.terms.len(), 2);

@@ -55,11 +55,7 @@ pub fn l2_normalize_backward(
             let i = c * m + j;
             // Strictly above eps the norm is differentiable: (g − x̂ (x̂·g)) / ‖x‖; otherwise
             // the clamp makes the denominator constant.
-            out[i] = if denom[j] > eps {
-                (grad_hat[i] - xhat[i] * dot[j]) / denom[j]
-            } else {
-                grad_hat[i] / denom[j]
-            };
+            out[i] = if denom[j] > eps { (grad_hat[i] - xhat[i] * dot[j]) / denom[j] } else { grad_hat[i] / denom[j] };
         }
     }
     out

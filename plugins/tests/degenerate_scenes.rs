@@ -78,29 +78,18 @@ fn two_stages(session: &mut Session) -> Result<Outcome, RunError> {
         let inference = MaskInference::new(session, &seg.head, Some(seg.teacher.extractor()))?;
         let masks = evaluate_masks(session, &inference, false)?;
         let test = ImageEval::from_report(&masks.image, 1, masks.seconds);
-        Ok(Outcome {
-            stage1,
-            masks,
-            test,
-        })
+        Ok(Outcome { stage1, masks, test })
     })();
     std::fs::remove_dir_all(&session.run_dir).ok();
     result
 }
 
 fn assert_image_eval_finite(eval: &ImageEval, what: &str) {
-    for (name, v) in [
-        ("psnr", eval.psnr),
-        ("psnr_mean_per_view", eval.psnr_mean_per_view),
-        ("ssim", eval.ssim),
-    ] {
+    for (name, v) in [("psnr", eval.psnr), ("psnr_mean_per_view", eval.psnr_mean_per_view), ("ssim", eval.ssim)] {
         assert!(v.is_finite(), "{what}: {name} = {v}");
     }
     for v in &eval.views {
-        assert!(
-            v.psnr.is_finite() && v.mse.is_finite() && v.ssim.is_finite(),
-            "{what}: {v:?}"
-        );
+        assert!(v.psnr.is_finite() && v.mse.is_finite() && v.ssim.is_finite(), "{what}: {v:?}");
     }
 }
 
@@ -110,22 +99,14 @@ fn assert_finite_metrics(out: &Outcome, test_views: usize, what: &str) {
     assert_image_eval_finite(&out.test, &format!("{what}, mask pass"));
     assert_eq!(out.masks.views.len(), test_views, "{what}");
     for v in &out.masks.views {
-        let ari = v
-            .ari
-            .unwrap_or_else(|| panic!("{what}: view {} has a mask but no ARI", v.view));
-        assert!(
-            ari.is_finite() && (-0.5..=1.0).contains(&ari),
-            "{what}: {v:?}"
-        );
+        let ari = v.ari.unwrap_or_else(|| panic!("{what}: view {} has a mask but no ARI", v.view));
+        assert!(ari.is_finite() && (-0.5..=1.0).contains(&ari), "{what}: {v:?}");
         for iou in [v.iou_bg, v.iou_fg, v.miou].into_iter().flatten() {
             assert!((0.0..=1.0).contains(&iou), "{what}: {v:?}");
         }
         assert!(v.miou.is_some(), "{what}: {v:?}");
         assert!(v.psnr.is_finite() && v.ssim.is_finite(), "{what}: {v:?}");
-        assert!(
-            (0.0..=1.0).contains(&v.foreground_fraction) && v.clusters >= 1,
-            "{what}: {v:?}"
-        );
+        assert!((0.0..=1.0).contains(&v.foreground_fraction) && v.clusters >= 1, "{what}: {v:?}");
     }
     let seg = &out.masks.segmentation;
     assert!(seg.mean_ari().is_some_and(f64::is_finite), "{what}");
@@ -144,13 +125,10 @@ fn assert_finite_metrics(out: &Outcome, test_views: usize, what: &str) {
 fn find_nulls(v: &serde_json::Value, path: String, out: &mut Vec<String>) {
     match v {
         serde_json::Value::Null => out.push(path),
-        serde_json::Value::Array(a) => a
-            .iter()
-            .enumerate()
-            .for_each(|(i, v)| find_nulls(v, format!("{path}/{i}"), out)),
-        serde_json::Value::Object(o) => o
-            .iter()
-            .for_each(|(k, v)| find_nulls(v, format!("{path}/{k}"), out)),
+        serde_json::Value::Array(a) => {
+            a.iter().enumerate().for_each(|(i, v)| find_nulls(v, format!("{path}/{i}"), out))
+        }
+        serde_json::Value::Object(o) => o.iter().for_each(|(k, v)| find_nulls(v, format!("{path}/{k}"), out)),
         _ => {}
     }
 }
@@ -171,13 +149,7 @@ fn all_black_images_give_finite_metrics() {
 #[test]
 fn all_black_images_with_other_mask_rules_and_random_negatives_give_finite_metrics() {
     let masks = "normalize = true\nsoftmax = true\nforeground = \"saliency\"\nkeep = \"all\"";
-    let mut s = session(
-        "black-random",
-        6,
-        3,
-        "",
-        &format!("{masks}\n[miner]\nkind = \"random\""),
-    );
+    let mut s = session("black-random", 6, 3, "", &format!("{masks}\n[miner]\nkind = \"random\""));
     for v in &mut s.scene.views {
         v.image = RgbImage::new(v.image.width, v.image.height);
     }
@@ -206,15 +178,9 @@ fn collinear_cameras_give_finite_metrics() {
         let cam = &v.camera;
         v.camera = Camera::look_at(eye, c, [0.0, 1.0, 0.0], cam.width, cam.height, cam.fx);
     }
-    s.scene
-        .validate()
-        .expect("the collinear scene is well formed");
+    s.scene.validate().expect("the collinear scene is well formed");
     let f0 = s.scene.views[0].camera.forward();
-    assert!(s
-        .scene
-        .views
-        .iter()
-        .all(|v| (sos_core::camera::dot(v.camera.forward(), f0) - 1.0).abs() < 1e-5));
+    assert!(s.scene.views.iter().all(|v| (sos_core::camera::dot(v.camera.forward(), f0) - 1.0).abs() < 1e-5));
     let tests = s.scene.test.len();
     let out = two_stages(&mut s).expect("collinear cameras run");
     assert_finite_metrics(&out, tests, "collinear");
@@ -234,10 +200,7 @@ fn an_empty_field_gives_finite_metrics() {
     assert_finite_metrics(&out, tests, "empty field");
     // Nothing rendered: zero logits everywhere, one cluster, one class in every mask.
     for v in &out.masks.views {
-        assert!(
-            v.foreground_fraction == 0.0 || v.foreground_fraction == 1.0,
-            "{v:?}"
-        );
+        assert!(v.foreground_fraction == 0.0 || v.foreground_fraction == 1.0, "{v:?}");
         assert_eq!(v.ari, Some(0.0), "{v:?}");
     }
 }
@@ -257,26 +220,12 @@ impl RadianceField for NanColour {
     fn density(&self, p: &[Vec3], d: &mut [f32]) {
         self.0.density(p, d);
     }
-    fn forward(
-        &self,
-        p: &[Vec3],
-        dirs: &[Vec3],
-        d: &mut [f32],
-        c: &mut [[f32; 3]],
-        record: bool,
-    ) -> FieldTape {
+    fn forward(&self, p: &[Vec3], dirs: &[Vec3], d: &mut [f32], c: &mut [[f32; 3]], record: bool) -> FieldTape {
         let tape = self.0.forward(p, dirs, d, c, record);
         c.iter_mut().for_each(|c| *c = [f32::NAN; 3]);
         tape
     }
-    fn backward(
-        &mut self,
-        p: &[Vec3],
-        dirs: &[Vec3],
-        tape: FieldTape,
-        gd: &[f32],
-        gc: &[[f32; 3]],
-    ) {
+    fn backward(&mut self, p: &[Vec3], dirs: &[Vec3], tape: FieldTape, gd: &[f32], gc: &[[f32; 3]]) {
         self.0.backward(p, dirs, tape, gd, gc);
     }
     fn step(&mut self, lr_factor: f32) {
@@ -321,9 +270,5 @@ fn a_nan_render_is_not_reported_as_a_perfect_one() {
     let eval = evaluate_views(&s, false).unwrap();
     assert!(!eval.views.is_empty());
     // The 120 dB floor is for exact renders only: NaN must stay visible.
-    assert!(
-        eval.psnr.is_nan() && eval.views.iter().all(|v| v.psnr.is_nan()),
-        "{:?}",
-        eval.views
-    );
+    assert!(eval.psnr.is_nan() && eval.views.iter().all(|v| v.psnr.is_nan()), "{:?}", eval.views);
 }

@@ -78,7 +78,14 @@ impl RadianceField for Probe {
 }
 
 impl FrozenPass for Probe {
-    fn forward_with_seg_input(&self, p: &[Vec3], d: &[Vec3], density: &mut [f32], rgb: &mut [[f32; 3]], seg: &mut [f32]) {
+    fn forward_with_seg_input(
+        &self,
+        p: &[Vec3],
+        d: &[Vec3],
+        density: &mut [f32],
+        rgb: &mut [[f32; 3]],
+        seg: &mut [f32],
+    ) {
         plain::forward_with_seg_input(self.inner.as_ref(), p, d, density, rgb, seg);
     }
     fn density_state_dim(&self) -> usize {

@@ -133,14 +133,15 @@ fn session(steps: usize, field: &str) -> Session {
 fn poison(session: &mut Session, inject: Inject, bad_steps: usize) -> Arc<AtomicUsize> {
     let applied = Arc::new(AtomicUsize::new(0));
     let inner = std::mem::replace(&mut session.field, Box::new(Dummy));
-    session.field =
-        Box::new(Poisoned { inner, inject, left: AtomicUsize::new(bad_steps), applied: applied.clone() });
+    session.field = Box::new(Poisoned { inner, inject, left: AtomicUsize::new(bad_steps), applied: applied.clone() });
     applied
 }
 
 #[test]
 fn bad_steps_are_skipped_and_training_continues() {
-    for (field, inject) in [("voxel-grid", Inject::Colour), ("voxel-grid", Inject::Gradient), ("nerf", Inject::Gradient)] {
+    for (field, inject) in
+        [("voxel-grid", Inject::Colour), ("voxel-grid", Inject::Gradient), ("nerf", Inject::Gradient)]
+    {
         let mut s = session(10, field);
         let before = s.field.save_state();
         // Steps 0..=3 are poisoned (begin_step of step k > 0 consumes one), then 6 clean ones.

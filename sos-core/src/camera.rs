@@ -28,9 +28,7 @@ impl CameraConvention {
         let col = |m: &[[f32; 3]; 3], c: usize| [m[0][c], m[1][c], m[2][c]];
         let (x, y, z) = match self {
             CameraConvention::OpenGl => (col(&rotation, 0), col(&rotation, 1), col(&rotation, 2)),
-            CameraConvention::OpenCv => {
-                (col(&rotation, 0), neg(col(&rotation, 1)), neg(col(&rotation, 2)))
-            }
+            CameraConvention::OpenCv => (col(&rotation, 0), neg(col(&rotation, 1)), neg(col(&rotation, 2))),
             // (down, right, back) -> (right, up, back) = [c1, -c0, c2], as LLFF's loader does.
             CameraConvention::Llff => (col(&rotation, 1), neg(col(&rotation, 0)), col(&rotation, 2)),
         };
@@ -131,15 +129,7 @@ impl Camera {
         for r in 0..3 {
             cam_to_world[r] = [right[r], true_up[r], back[r], eye[r]];
         }
-        Camera {
-            width,
-            height,
-            fx: focal,
-            fy: focal,
-            cx: width as f32 / 2.0,
-            cy: height as f32 / 2.0,
-            cam_to_world,
-        }
+        Camera { width, height, fx: focal, fy: focal, cx: width as f32 / 2.0, cy: height as f32 / 2.0, cam_to_world }
     }
 
     /// Checks that the pose is finite and the rotation orthonormal; returns what is wrong.

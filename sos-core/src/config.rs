@@ -342,8 +342,8 @@ impl Default for RenderConfig {
 impl RunConfig {
     /// Reads and validates a config file.
     pub fn load(path: &Path) -> Result<RunConfig, ConfigError> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|source| ConfigError::Read { path: path.to_path_buf(), source })?;
+        let text =
+            std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.to_path_buf(), source })?;
         RunConfig::parse(&text, path)
     }
 

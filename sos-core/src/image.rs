@@ -35,9 +35,8 @@ impl RgbImage {
 
     /// Reads a PNG or JPEG file (8 or 16 bit; alpha is dropped).
     pub fn load(path: &Path) -> Result<Self, IoError> {
-        let img = image::open(path).map_err(|e| {
-            IoError::file(path, format!("cannot decode image ({e}); re-export it as PNG or JPEG"))
-        })?;
+        let img = image::open(path)
+            .map_err(|e| IoError::file(path, format!("cannot decode image ({e}); re-export it as PNG or JPEG")))?;
         let rgb = img.to_rgb32f();
         let (w, h) = rgb.dimensions();
         if w == 0 || h == 0 {
@@ -49,8 +48,7 @@ impl RgbImage {
     /// Writes an 8-bit PNG, creating the parent folder; written to a temporary file first so an
     /// interrupted run never leaves a truncated PNG.
     pub fn save_png(&self, path: &Path) -> Result<(), IoError> {
-        let bytes: Vec<u8> =
-            self.data.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8).collect();
+        let bytes: Vec<u8> = self.data.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8).collect();
         let buf = image::RgbImage::from_raw(self.width as u32, self.height as u32, bytes)
             .expect("buffer length matches dimensions");
         save_atomically(path, |tmp| buf.save_with_format(tmp, image::ImageFormat::Png))
@@ -78,8 +76,7 @@ pub struct GrayImage {
 impl GrayImage {
     /// Reads any image as luminance in `[0, 1]`.
     pub fn load(path: &Path) -> Result<Self, IoError> {
-        let img = image::open(path)
-            .map_err(|e| IoError::file(path, format!("cannot decode mask ({e})")))?;
+        let img = image::open(path).map_err(|e| IoError::file(path, format!("cannot decode mask ({e})")))?;
         let g = img.to_luma32f();
         let (w, h) = g.dimensions();
         Ok(GrayImage { width: w as usize, height: h as usize, data: g.into_raw() })
@@ -87,8 +84,7 @@ impl GrayImage {
 
     /// Writes an 8-bit grey PNG (values clamped to `[0, 1]`), atomically.
     pub fn save_png(&self, path: &Path) -> Result<(), IoError> {
-        let bytes: Vec<u8> =
-            self.data.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8).collect();
+        let bytes: Vec<u8> = self.data.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8).collect();
         let buf = image::GrayImage::from_raw(self.width as u32, self.height as u32, bytes)
             .expect("buffer length matches dimensions");
         save_atomically(path, |tmp| buf.save_with_format(tmp, image::ImageFormat::Png))
@@ -108,10 +104,7 @@ impl GrayImage {
     }
 }
 
-fn save_atomically(
-    path: &Path,
-    write: impl FnOnce(&Path) -> image::ImageResult<()>,
-) -> Result<(), IoError> {
+fn save_atomically(path: &Path, write: impl FnOnce(&Path) -> image::ImageResult<()>) -> Result<(), IoError> {
     if let Some(parent) = path.parent() {
         std::fs::create_dir_all(parent).map_err(|e| IoError::file(parent, e))?;
     }

@@ -110,11 +110,7 @@ pub enum KMeansError {
 ///
 /// Deterministic for a given `config.seed`. When the data has fewer than `config.k` distinct
 /// points the result has fewer clusters (see [`KMeansResult::k`]) rather than an error.
-pub fn kmeans(
-    data: &[f32],
-    dim: usize,
-    config: &KMeansConfig,
-) -> Result<KMeansResult, KMeansError> {
+pub fn kmeans(data: &[f32], dim: usize, config: &KMeansConfig) -> Result<KMeansResult, KMeansError> {
     if dim == 0 || !data.chunks_exact(dim).remainder().is_empty() {
         return Err(KMeansError::Shape { len: data.len(), dim });
     }
@@ -341,8 +337,7 @@ fn assign(points: &Points, centers: &[f32], labels: &mut [u32]) -> Partial {
         .par_chunks(CHUNK * dim)
         .zip(labels.par_chunks_mut(CHUNK))
         .map(|(chunk, labels)| {
-            let mut part =
-                Partial { sums: vec![0.0; k * dim], counts: vec![0; k], inertia: 0.0, changed: 0 };
+            let mut part = Partial { sums: vec![0.0; k * dim], counts: vec![0; k], inertia: 0.0, changed: 0 };
             for (p, label) in chunk.chunks_exact(dim).zip(labels.iter_mut()) {
                 let (c, d) = nearest(p, centers, dim);
                 if *label != c as u32 {
@@ -358,8 +353,7 @@ fn assign(points: &Points, centers: &[f32], labels: &mut [u32]) -> Partial {
             part
         })
         .collect();
-    let mut total =
-        Partial { sums: vec![0.0; k * dim], counts: vec![0; k], inertia: 0.0, changed: 0 };
+    let mut total = Partial { sums: vec![0.0; k * dim], counts: vec![0; k], inertia: 0.0, changed: 0 };
     for p in partials {
         total.sums.iter_mut().zip(&p.sums).for_each(|(t, v)| *t += v);
         total.counts.iter_mut().zip(&p.counts).for_each(|(t, v)| *t += v);
@@ -471,11 +465,8 @@ mod tests {
             assert!(near, "no centroid near {c:?}: {:?}", r.centroids);
         }
         // Inertia equals the sum of squared distances to the returned centroids.
-        let direct: f64 = data
-            .chunks_exact(2)
-            .zip(&r.labels)
-            .map(|(p, &l)| sq_dist(p, r.centroid(l as usize)) as f64)
-            .sum();
+        let direct: f64 =
+            data.chunks_exact(2).zip(&r.labels).map(|(p, &l)| sq_dist(p, r.centroid(l as usize)) as f64).sum();
         assert!((direct - r.inertia).abs() < 1e-6 * direct, "{direct} vs {}", r.inertia);
         // Uniform noise of half-width 1 in 2D: expected squared distance 2/3 per point.
         assert!((r.inertia / 10_000.0 - 2.0 / 3.0).abs() < 0.03, "{}", r.inertia);
@@ -486,8 +477,7 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(7);
         let dim = 16;
         let k = 8;
-        let means: Vec<Vec<f32>> =
-            (0..k).map(|_| (0..dim).map(|_| rng.gen_range(-20.0..20.0)).collect()).collect();
+        let means: Vec<Vec<f32>> = (0..k).map(|_| (0..dim).map(|_| rng.gen_range(-20.0..20.0)).collect()).collect();
         let mut data = Vec::new();
         for i in 0..4000 {
             data.extend(means[i % k].iter().map(|m| m + rng.gen_range(-1.0f32..1.0)));
@@ -514,13 +504,8 @@ mod tests {
     #[test]
     fn fewer_distinct_points_than_k_gives_fewer_clusters() {
         // Three distinct points, repeated.
-        let data: Vec<f32> = [[0.0f32, 0.0], [1.0, 1.0], [5.0, 5.0]]
-            .iter()
-            .cycle()
-            .take(30)
-            .flatten()
-            .copied()
-            .collect();
+        let data: Vec<f32> =
+            [[0.0f32, 0.0], [1.0, 1.0], [5.0, 5.0]].iter().cycle().take(30).flatten().copied().collect();
         let r = kmeans(&data, 2, &KMeansConfig { k: 5, ..Default::default() }).unwrap();
         assert_eq!(r.k, 3);
         assert_eq!(r.centroids.len(), 6);
@@ -539,10 +524,7 @@ mod tests {
         assert!(matches!(kmeans(&[1.0, 2.0, 3.0], 2, &cfg), Err(KMeansError::Shape { .. })));
         assert!(matches!(kmeans(&[1.0], 0, &cfg), Err(KMeansError::Shape { .. })));
         assert_eq!(kmeans(&[], 2, &cfg), Err(KMeansError::Empty));
-        assert_eq!(
-            kmeans(&[0.0, 1.0, f32::NAN, 0.0], 2, &cfg),
-            Err(KMeansError::NonFinite { point: 1 })
-        );
+        assert_eq!(kmeans(&[0.0, 1.0, f32::NAN, 0.0], 2, &cfg), Err(KMeansError::NonFinite { point: 1 }));
         for bad in [
             KMeansConfig { k: 0, ..cfg.clone() },
             KMeansConfig { n_init: 0, ..cfg.clone() },

@@ -116,4 +116,3 @@ macro_rules! plugin_kind {
         }
     };
 }
-

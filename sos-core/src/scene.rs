@@ -61,9 +61,7 @@ impl SceneExtent {
     /// Fields and the occupancy grid use it to express densities in world units.
     pub fn characteristic_length(&self) -> f32 {
         match *self {
-            SceneExtent::Bounded { min, max } => {
-                ((max[0] - min[0]) + (max[1] - min[1]) + (max[2] - min[2])) / 3.0
-            }
+            SceneExtent::Bounded { min, max } => ((max[0] - min[0]) + (max[1] - min[1]) + (max[2] - min[2])) / 3.0,
             SceneExtent::ForwardFacing { near, far, .. } => far - near,
             SceneExtent::Unbounded { radius, .. } => 4.0 * radius,
         }
@@ -182,8 +180,7 @@ impl Scene {
 /// Solves a 3x3 linear system by Cramer's rule; `None` when it is (near) singular.
 pub fn solve3(a: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
     let det = |m: &[[f64; 3]; 3]| {
-        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
             + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
     };
     let d = det(&a);

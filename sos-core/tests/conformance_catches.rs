@@ -32,7 +32,8 @@ struct LinearConfig {
 #[typetag::serde(name = "test-linear")]
 impl RadianceFieldConfig for LinearConfig {
     fn build(&self, _: &SceneExtent, seed: u64) -> Result<Box<dyn RadianceField>, BuildError> {
-        let theta = (0..13).map(|i| (((i as u64 + 1) * (seed + 3) * 2654435761) % 1000) as f32 / 1000.0 - 0.5).collect();
+        let theta =
+            (0..13).map(|i| (((i as u64 + 1) * (seed + 3) * 2654435761) % 1000) as f32 / 1000.0 - 0.5).collect();
         Ok(Box::new(Linear { theta, grad: vec![0.0; 13], fault: self.fault }))
     }
 }
@@ -148,7 +149,14 @@ impl RadianceField for Linear {
 }
 
 impl FrozenPass for Linear {
-    fn forward_with_seg_input(&self, p: &[Vec3], d: &[Vec3], density: &mut [f32], rgb: &mut [[f32; 3]], seg: &mut [f32]) {
+    fn forward_with_seg_input(
+        &self,
+        p: &[Vec3],
+        d: &[Vec3],
+        density: &mut [f32],
+        rgb: &mut [[f32; 3]],
+        seg: &mut [f32],
+    ) {
         self.forward(p, d, density, rgb, false);
         self.seg_input(p, seg);
         if self.fault == Fault::FusedPassDiffers {

@@ -60,7 +60,12 @@ fn list_names_the_default_plugins() {
         assert!(stdout.contains(kind), "`sos list` does not name {kind}:\n{stdout}");
     }
     // Each kind names the crate that declared it.
-    for (kind, krate) in [("voxel-grid", "sos-plugins"), ("synthetic", "sos-datasets"), ("cell-stats", "sos-backbones"), ("appearance", "sos-losses")] {
+    for (kind, krate) in [
+        ("voxel-grid", "sos-plugins"),
+        ("synthetic", "sos-datasets"),
+        ("cell-stats", "sos-backbones"),
+        ("appearance", "sos-losses"),
+    ] {
         let line = stdout.lines().find(|l| l.split_whitespace().next() == Some(kind)).expect("listed");
         assert!(line.contains(&format!("({krate})")), "`sos list` does not name {kind}'s crate {krate}: {line}");
     }
@@ -261,7 +266,8 @@ fn compare_scores_a_mask_against_a_resized_reference() {
     pred.save_png(&dir.join("pred.png")).unwrap();
     let out = sos(&["compare", "pred.png", "reference.png", "--out", "cmp.json"], &dir);
     assert!(out.status.success(), "{}", text(&out.stderr));
-    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("cmp.json")).unwrap()).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("cmp.json")).unwrap()).unwrap();
     assert!((json["iou_fg"].as_f64().unwrap() - 0.5).abs() < 1e-9, "{json}");
     assert!((json["iou_bg"].as_f64().unwrap() - 10.0 / 15.0).abs() < 1e-9, "{json}");
     assert!(text(&out.stdout).contains("IoU(FG) 0.5000"));
@@ -275,7 +281,14 @@ fn compare_scores_a_mask_against_a_resized_reference() {
 fn a_corrupt_dataset_file_exits_2_naming_it() {
     use sos_plugins::datasets::{generate, Format, SyntheticConfig};
     let dir = temp_dir("corrupt-colmap");
-    let scene = generate(&SyntheticConfig { width: 40, height: 30, views: 6, hold_out_every: 3, render_path_views: 2, ..Default::default() });
+    let scene = generate(&SyntheticConfig {
+        width: 40,
+        height: 30,
+        views: 6,
+        hold_out_every: 3,
+        render_path_views: 2,
+        ..Default::default()
+    });
     let data = dir.join("scene");
     Format::ColmapBin.write(&scene, &data).unwrap();
     let images_bin = data.join("sparse/0/images.bin");

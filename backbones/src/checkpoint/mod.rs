@@ -160,7 +160,8 @@ impl StateDict {
             ));
         };
         for (name, e) in &entries {
-            check_bounds(e).map_err(|m| format_error(format!("tensor `{name}`: {m} (the file is corrupt or truncated)")))?;
+            check_bounds(e)
+                .map_err(|m| format_error(format!("tensor `{name}`: {m} (the file is corrupt or truncated)")))?;
         }
         Ok(StateDict { path: path.into(), format, bytes, entries })
     }

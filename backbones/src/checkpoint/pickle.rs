@@ -164,7 +164,11 @@ struct Machine<'a> {
 
 impl<'a> Machine<'a> {
     fn take(&mut self, n: usize) -> Result<&'a [u8], String> {
-        let end = self.pos.checked_add(n).filter(|&e| e <= self.data.len()).ok_or("pickle ends in the middle of an opcode")?;
+        let end = self
+            .pos
+            .checked_add(n)
+            .filter(|&e| e <= self.data.len())
+            .ok_or("pickle ends in the middle of an opcode")?;
         let s = &self.data[self.pos..end];
         self.pos = end;
         Ok(s)

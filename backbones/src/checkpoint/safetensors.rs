@@ -20,14 +20,16 @@ pub fn looks_like(bytes: &[u8]) -> bool {
 
 /// Tensor name → where its values are.
 pub fn read_entries(bytes: &[u8]) -> Result<BTreeMap<String, TensorEntry>, String> {
-    let n = u64::from_le_bytes(bytes.get(..8).ok_or("file shorter than a safetensors header")?.try_into().expect("8 bytes"));
+    let n = u64::from_le_bytes(
+        bytes.get(..8).ok_or("file shorter than a safetensors header")?.try_into().expect("8 bytes"),
+    );
     let header_end = usize::try_from(n)
         .ok()
         .and_then(|n| n.checked_add(8))
         .filter(|&end| end <= bytes.len())
         .ok_or("safetensors header runs past the end of the file (truncated download?)")?;
-    let header: serde_json::Value =
-        serde_json::from_slice(&bytes[8..header_end]).map_err(|e| format!("safetensors header is not valid JSON: {e}"))?;
+    let header: serde_json::Value = serde_json::from_slice(&bytes[8..header_end])
+        .map_err(|e| format!("safetensors header is not valid JSON: {e}"))?;
     let table = header.as_object().ok_or("safetensors header is not a JSON object")?;
     let data_len = bytes.len() - header_end;
     let mut entries = BTreeMap::new();
@@ -44,7 +46,9 @@ pub fn read_entries(bytes: &[u8]) -> Result<BTreeMap<String, TensorEntry>, Strin
             .as_array()
             .ok_or_else(|| bad("no shape"))?
             .iter()
-            .map(|d| d.as_u64().and_then(|d| usize::try_from(d).ok()).ok_or_else(|| bad("shape entries must be integers")))
+            .map(|d| {
+                d.as_u64().and_then(|d| usize::try_from(d).ok()).ok_or_else(|| bad("shape entries must be integers"))
+            })
             .collect::<Result<Vec<_>, _>>()?;
         let offsets = info["data_offsets"]
             .as_array()

@@ -107,7 +107,9 @@ pub fn read_entries(bytes: &[u8]) -> Result<BTreeMap<String, Range<usize>>, Stri
             ));
         }
         if compressed != size {
-            return Err(format!("entry `{name}`: stored size {compressed} differs from its size {size} (corrupt file)"));
+            return Err(format!(
+                "entry `{name}`: stored size {compressed} differs from its size {size} (corrupt file)"
+            ));
         }
         let local = to_usize(local, "entry offset")?;
         if r.u32(local)? != LOCAL_SIG {
@@ -115,7 +117,8 @@ pub fn read_entries(bytes: &[u8]) -> Result<BTreeMap<String, Range<usize>>, Stri
         }
         let start = local + 30 + r.u16(local + 26)? as usize + r.u16(local + 28)? as usize;
         let len = to_usize(size, "entry size")?;
-        r.slice(start, len).map_err(|_| format!("entry `{name}` runs past the end of the file (truncated download?)"))?;
+        r.slice(start, len)
+            .map_err(|_| format!("entry `{name}` runs past the end of the file (truncated download?)"))?;
         entries.insert(name, start..start + len);
         at = extra_end + comment_len;
     }

@@ -9,8 +9,8 @@
 //!   the ONNX Runtime comparison, without Python).
 //!
 //! Features per image: the last block's patch tokens before the final norm as a
-//! `[dim, grid_h, grid_w]` map, its [CLS] token as the global descriptor, and the last
-//! block's [CLS] attention over the patches (mean over heads) as the saliency map.
+//! `[dim, grid_h, grid_w]` map, its \[CLS\] token as the global descriptor, and the last
+//! block's \[CLS\] attention over the patches (mean over heads) as the saliency map.
 
 pub mod arch;
 pub mod fastmath;
@@ -27,8 +27,8 @@ use sos_core::error::{BuildError, ExtractError};
 use sos_core::image::RgbImage;
 use sos_core::plugin::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};
 
-pub use arch::Arch;
 pub use crate::checkpoint::{CheckpointError, StateDict};
+pub use arch::Arch;
 pub use model::{LoadError, Vit, VitOutput, VitShape};
 pub use preprocess::{Preprocess, Resize};
 
@@ -244,7 +244,14 @@ impl DinoVit {
 
     fn empty_map(&self) -> FeatureMap {
         let d = self.model.shape.dim;
-        FeatureMap { channels: d, height: 1, width: 1, data: vec![0.0; d], cls: vec![0.0; d], saliency: Some(vec![0.0]) }
+        FeatureMap {
+            channels: d,
+            height: 1,
+            width: 1,
+            data: vec![0.0; d],
+            cls: vec![0.0; d],
+            saliency: Some(vec![0.0]),
+        }
     }
 }
 
@@ -276,10 +283,15 @@ impl FeatureExtractor for DinoVit {
     fn extract(&self, images: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError> {
         let inputs = self.preprocess.apply_all(images);
         // The native forward cannot fail on valid inputs; invalid ones get empty maps.
-        Ok(preprocess::extract_in_runs(&inputs, self.batch, || self.empty_map(), |batch, n, h, w| {
-            let result = self.model.forward(batch, n, h, w);
-            feature_maps(&result)
-        }))
+        Ok(preprocess::extract_in_runs(
+            &inputs,
+            self.batch,
+            || self.empty_map(),
+            |batch, n, h, w| {
+                let result = self.model.forward(batch, n, h, w);
+                feature_maps(&result)
+            },
+        ))
     }
 
     fn identity(&self) -> String {

@@ -1,13 +1,13 @@
 //! The DINO VisionTransformer forward pass (DINO's `vision_transformer.py`), inference only.
 //!
 //! Patch embedding (a `p × p` stride-`p` convolution, done as one GEMM over unfolded
-//! patches), a [CLS] token, position embeddings (interpolated for other grids), then pre-LN
+//! patches), a \[CLS\] token, position embeddings (interpolated for other grids), then pre-LN
 //! blocks `x += proj(attn(norm1(x)))`, `x += fc2(gelu(fc1(norm2(x))))` with multi-head
 //! self-attention `softmax(q·kᵀ/√d_head)·v`, exact GELU and LayerNorm ε = 1e-6.
 //!
 //! Outputs, as the reference uses them: the tokens of the last block BEFORE the final
-//! LayerNorm (token 0 is [CLS], then the patches row-major) and the last block's attention of
-//! the [CLS] query over all tokens, averaged over heads. [`Vit::final_norm`] applies the final
+//! LayerNorm (token 0 is \[CLS\], then the patches row-major) and the last block's attention of
+//! the \[CLS\] query over all tokens, averaged over heads. [`Vit::final_norm`] applies the final
 //! LayerNorm where the normed tokens are wanted.
 //!
 //! Activations are row-major `[tokens, channels]` for the whole batch, so every linear layer
@@ -18,9 +18,9 @@ use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use sos_core::nn::{matmul, MatRef, PARALLEL_MIN_MACS};
 
-use crate::checkpoint::{CheckpointError, StateDict};
 use super::fastmath::{gelu, softmax_row, sum};
 use super::interpolate::interpolate_pos_grid;
+use crate::checkpoint::{CheckpointError, StateDict};
 
 /// LayerNorm epsilon of DINO's ViTs.
 pub const LN_EPS: f32 = 1e-6;
@@ -169,7 +169,7 @@ pub struct VitOutput {
     pub dim: usize,
     /// `[batch, 1 + grid_h·grid_w, dim]`: last block's output before the final norm.
     pub tokens: Vec<f32>,
-    /// `[batch, 1 + grid_h·grid_w]`: last block's [CLS]-query attention, mean over heads.
+    /// `[batch, 1 + grid_h·grid_w]`: last block's \[CLS\]-query attention, mean over heads.
     pub cls_attn: Vec<f32>,
 }
 
@@ -220,7 +220,9 @@ impl VitShape {
         };
         let patch = match sd.shape("patch_embed.proj.weight") {
             Some([d, 3, p, q]) if *d == dim && p == q && *p > 0 => *p,
-            Some(s) => return not_dino(format!("`patch_embed.proj.weight` has shape {s:?}, expected [{dim}, 3, p, p]")),
+            Some(s) => {
+                return not_dino(format!("`patch_embed.proj.weight` has shape {s:?}, expected [{dim}, 3, p, p]"))
+            }
             None => return not_dino("`patch_embed.proj.weight` is missing".into()),
         };
         let positions = match sd.shape("pos_embed") {
@@ -259,13 +261,20 @@ impl Vit {
             Ok(sd.f32(name)?)
         };
         let norm = |prefix: &str| -> Result<LayerNorm, LoadError> {
-            Ok(LayerNorm { weight: get(&format!("{prefix}.weight"), &[d])?, bias: get(&format!("{prefix}.bias"), &[d])? })
+            Ok(LayerNorm {
+                weight: get(&format!("{prefix}.weight"), &[d])?,
+                bias: get(&format!("{prefix}.bias"), &[d])?,
+            })
         };
         let dense = |prefix: &str, out: usize, inp: usize| -> Result<Dense, LoadError> {
             let w = get(&format!("{prefix}.weight"), &[out, inp])?;
             let bias_name = format!("{prefix}.bias");
             // DINO's ViTs have qkv biases; tolerate their absence (qkv_bias=False) as zeros.
-            let b = if sd.shape(&bias_name).is_none() && prefix.ends_with("qkv") { vec![0.0; out] } else { get(&bias_name, &[out])? };
+            let b = if sd.shape(&bias_name).is_none() && prefix.ends_with("qkv") {
+                vec![0.0; out]
+            } else {
+                get(&bias_name, &[out])?
+            };
             Ok(Dense::from_torch(&w, b, out, inp))
         };
         let pw = get("patch_embed.proj.weight", &[d, 3, patch, patch])?;
@@ -300,7 +309,8 @@ impl Vit {
         let mut draw = |n: usize| -> Vec<f32> { (0..n).map(|_| rng.gen_range(-0.035f32..0.035)).collect() };
         let VitShape { patch, dim: d, mlp_hidden: m, grid, .. } = shape;
         let ln = || LayerNorm { weight: vec![1.0; d], bias: vec![0.0; d] };
-        let mut dense = |inp: usize, out: usize| Dense { in_dim: inp, out_dim: out, weight: draw(inp * out), bias: draw(out) };
+        let mut dense =
+            |inp: usize, out: usize| Dense { in_dim: inp, out_dim: out, weight: draw(inp * out), bias: draw(out) };
         let patch_embed = dense(3 * patch * patch, d);
         let blocks = (0..shape.depth)
             .map(|_| Block {
@@ -406,8 +416,16 @@ impl Vit {
 
 /// Multi-head self-attention of `batch` sequences of `n` tokens. `qkv` is `[batch·n, 3·dim]`
 /// (q, k, v, each with the heads side by side); writes `[batch·n, dim]` into `out` and, when
-/// asked, the mean over heads of the [CLS] query's attention `[batch, n]`.
-fn attention(qkv: &[f32], batch: usize, n: usize, heads: usize, dh: usize, out: &mut [f32], cls_attn: Option<&mut [f32]>) {
+/// asked, the mean over heads of the \[CLS\] query's attention `[batch, n]`.
+fn attention(
+    qkv: &[f32],
+    batch: usize,
+    n: usize,
+    heads: usize,
+    dh: usize,
+    out: &mut [f32],
+    cls_attn: Option<&mut [f32]>,
+) {
     let d = heads * dh;
     let scale = 1.0 / (dh as f32).sqrt();
     // With enough (image, head) tasks to occupy the pool, query blocks small enough that
@@ -472,12 +490,16 @@ mod tests {
         let d = heads * dh;
         let mut out = vec![0.0f64; batch * n * d];
         let mut cls = vec![0.0f64; batch * n];
-        let at = |b: usize, i: usize, part: usize, h: usize, j: usize| qkv[(b * n + i) * 3 * d + part * d + h * dh + j] as f64;
+        let at = |b: usize, i: usize, part: usize, h: usize, j: usize| {
+            qkv[(b * n + i) * 3 * d + part * d + h * dh + j] as f64
+        };
         for b in 0..batch {
             for h in 0..heads {
                 for i in 0..n {
                     let s: Vec<f64> = (0..n)
-                        .map(|k| (0..dh).map(|j| at(b, i, 0, h, j) * at(b, k, 1, h, j)).sum::<f64>() / (dh as f64).sqrt())
+                        .map(|k| {
+                            (0..dh).map(|j| at(b, i, 0, h, j) * at(b, k, 1, h, j)).sum::<f64>() / (dh as f64).sqrt()
+                        })
                         .collect();
                     let m = s.iter().copied().fold(f64::NEG_INFINITY, f64::max);
                     let e: Vec<f64> = s.iter().map(|v| (v - m).exp()).collect();
@@ -503,7 +525,8 @@ mod tests {
         for (batch, heads, n) in [(1usize, 2usize, 300usize), (3, 4, 70)] {
             let dh = 16;
             let d = heads * dh;
-            let qkv: Vec<f32> = (0..batch * n * 3 * d).map(|i| (((i * 2654435761) % 2001) as f32 / 1000.0 - 1.0) * 1.5).collect();
+            let qkv: Vec<f32> =
+                (0..batch * n * 3 * d).map(|i| (((i * 2654435761) % 2001) as f32 / 1000.0 - 1.0) * 1.5).collect();
             let mut out = vec![0.0f32; batch * n * d];
             let mut cls = vec![0.0f32; batch * n];
             attention(&qkv, batch, n, heads, dh, &mut out, Some(&mut cls));
@@ -520,11 +543,17 @@ mod tests {
         let s = VitShape::dino(384, 16, 12, 6);
         assert_eq!(s.num_parameters(), 21_665_664);
         let v = Vit::random(VitShape::dino(64, 16, 2, 2), 0);
-        let stored = v.patch_embed.weight.len() + v.patch_embed.bias.len() + v.cls_token.len() + v.pos_embed.len()
-            + v.blocks.iter().map(|b| {
-                [&b.qkv, &b.proj, &b.fc1, &b.fc2].iter().map(|l| l.weight.len() + l.bias.len()).sum::<usize>()
-                    + 2 * (b.norm1.weight.len() + b.norm2.weight.len())
-            }).sum::<usize>()
+        let stored = v.patch_embed.weight.len()
+            + v.patch_embed.bias.len()
+            + v.cls_token.len()
+            + v.pos_embed.len()
+            + v.blocks
+                .iter()
+                .map(|b| {
+                    [&b.qkv, &b.proj, &b.fc1, &b.fc2].iter().map(|l| l.weight.len() + l.bias.len()).sum::<usize>()
+                        + 2 * (b.norm1.weight.len() + b.norm2.weight.len())
+                })
+                .sum::<usize>()
             + 2 * v.norm.weight.len();
         assert_eq!(stored, v.shape.num_parameters());
     }

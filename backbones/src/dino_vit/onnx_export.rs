@@ -3,7 +3,7 @@
 //!
 //! The graph has the input `image` `[batch, 3, size, size]` (normalised, fixed size; the
 //! batch fixed or symbolic) and the outputs `tokens` `[batch, 1 + patches, dim]` (last block,
-//! before the final norm) and `cls_attn` `[batch, 1 + patches]` (last block's [CLS]-query
+//! before the final norm) and `cls_attn` `[batch, 1 + patches]` (last block's \[CLS\]-query
 //! attention, mean over heads) — the names and layout of the reference fixture's
 //! `model.onnx`. The position embedding for `size` is interpolated once at export time.
 //!

@@ -85,11 +85,9 @@ pub struct Tensor3 {
 /// Nearest source index of each output index (`⌊i · in / out⌋`, through `via` if nonzero).
 fn nearest_map(input: usize, output: usize, via: usize) -> Vec<usize> {
     (0..output)
-        .map(|i| {
-            match ((i * via).checked_div(output), via) {
-                (Some(up), v) if v > 0 => up * input / v,
-                _ => i * input / output,
-            }
+        .map(|i| match ((i * via).checked_div(output), via) {
+            (Some(up), v) if v > 0 => up * input / v,
+            _ => i * input / output,
         })
         .map(|s| s.min(input - 1))
         .collect()

@@ -271,10 +271,15 @@ impl FeatureExtractor for EfficientNetLite {
     fn extract(&self, images: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError> {
         let inputs = self.preprocess.apply_all(images);
         // The native forward cannot fail on valid inputs; invalid ones get empty maps.
-        Ok(preprocess::extract_in_runs(&inputs, self.batch, || self.empty_map(), |batch, n, h, w| {
-            let result = self.model.forward(batch, n, h, w);
-            feature_maps(&result, self.stage)
-        }))
+        Ok(preprocess::extract_in_runs(
+            &inputs,
+            self.batch,
+            || self.empty_map(),
+            |batch, n, h, w| {
+                let result = self.model.forward(batch, n, h, w);
+                feature_maps(&result, self.stage)
+            },
+        ))
     }
 
     fn identity(&self) -> String {

@@ -236,7 +236,7 @@ pub fn safetensors_bytes(tensors: &[(String, F32Array)], dtype_of: impl Fn(&str)
         );
     }
     let mut text = serde_json::Value::Object(header).to_string();
-    while (8 + text.len()) % 8 != 0 {
+    while !(8 + text.len()).is_multiple_of(8) {
         text.push(' ');
     }
     let mut out = (text.len() as u64).to_le_bytes().to_vec();

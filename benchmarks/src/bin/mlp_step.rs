@@ -69,14 +69,8 @@ fn bare_gemm(
 
 fn main() {
     sos_benchmarks::allocate_like_sos();
-    let threads = std::env::var("RAYON_NUM_THREADS")
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(2);
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build_global()
-        .expect("rayon pool");
+    let threads = std::env::var("RAYON_NUM_THREADS").ok().and_then(|s| s.parse().ok()).unwrap_or(2);
+    rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().expect("rayon pool");
     let n = BATCH;
     let (in_dim, out_dim) = (DIMS[0], DIMS[DIMS.len() - 1]);
     let mut rng = StdRng::seed_from_u64(0);
@@ -87,11 +81,8 @@ fn main() {
 
     // GEMM flops of one step: forward x·W and ∂W = xᵀ·g for every layer, ∂x = g·Wᵀ for all but
     // the first (the input needs no gradient).
-    let flops: f64 = DIMS
-        .windows(2)
-        .enumerate()
-        .map(|(l, d)| 2.0 * (n * d[0] * d[1]) as f64 * if l == 0 { 2.0 } else { 3.0 })
-        .sum();
+    let flops: f64 =
+        DIMS.windows(2).enumerate().map(|(l, d)| 2.0 * (n * d[0] * d[1]) as f64 * if l == 0 { 2.0 } else { 3.0 }).sum();
 
     let nn_step = |mlp: &mut Mlp, adam: &mut Adam| -> f64 {
         let (y, tape) = mlp.forward(&x, n);
@@ -115,48 +106,21 @@ fn main() {
     let mut outs: Vec<Vec<f32>> = DIMS.iter().map(|&d| vec![0.0f32; n * d]).collect();
     let grads: Vec<Vec<f32>> = DIMS.iter().map(|&d| vec![0.1f32; n * d]).collect();
     let mut dxs: Vec<Vec<f32>> = DIMS.iter().map(|&d| vec![0.0f32; n * d]).collect();
-    let weights: Vec<Vec<f32>> = DIMS
-        .windows(2)
-        .map(|d| vec![0.01f32; d[0] * d[1]])
-        .collect();
+    let weights: Vec<Vec<f32>> = DIMS.windows(2).map(|d| vec![0.01f32; d[0] * d[1]]).collect();
     let mut wgrads: Vec<Vec<f32>> = DIMS.windows(2).map(|d| vec![0.0f32; d[0] * d[1]]).collect();
     let mut bare = || {
         for (l, d) in DIMS.windows(2).enumerate() {
             let (i, o) = (d[0], d[1]);
             // y[n,o] = x[n,i]·W[i,o]
-            bare_gemm(
-                (n, o, i),
-                &mut outs[l + 1],
-                false,
-                &acts[l],
-                (1, i),
-                &weights[l],
-                (1, o),
-            );
+            bare_gemm((n, o, i), &mut outs[l + 1], false, &acts[l], (1, i), &weights[l], (1, o));
         }
         for (l, d) in DIMS.windows(2).enumerate().rev() {
             let (i, o) = (d[0], d[1]);
             // ∂W[i,o] += xᵀ·g  (x viewed transposed: column stride i, row stride 1)
-            bare_gemm(
-                (i, o, n),
-                &mut wgrads[l],
-                true,
-                &acts[l],
-                (i, 1),
-                &grads[l + 1],
-                (1, o),
-            );
+            bare_gemm((i, o, n), &mut wgrads[l], true, &acts[l], (i, 1), &grads[l + 1], (1, o));
             if l > 0 {
                 // ∂x[n,i] = g[n,o]·Wᵀ  (W viewed transposed: column stride o, row stride 1)
-                bare_gemm(
-                    (n, i, o),
-                    &mut dxs[l],
-                    false,
-                    &grads[l + 1],
-                    (1, o),
-                    &weights[l],
-                    (o, 1),
-                );
+                bare_gemm((n, i, o), &mut dxs[l], false, &grads[l + 1], (1, o), &weights[l], (o, 1));
             }
         }
     };
@@ -185,19 +149,8 @@ fn main() {
         "mlp_step: MLP {DIMS:?} ReLU, batch {n}, MSE + Adam, {threads} rayon threads, median of {REPEATS} after {WARMUP} warm-up"
     );
     println!("GEMM work per step: {:.2} GFLOP", flops / 1e9);
-    println!(
-        "nn training step : {:8.1} ms/step  {:6.1} GFLOP/s",
-        nn_s * 1e3,
-        nn_gf
-    );
-    println!(
-        "bare GEMMs       : {:8.1} ms/step  {:6.1} GFLOP/s",
-        bare_s * 1e3,
-        bare_gf
-    );
-    println!(
-        "ratio nn / bare throughput: {:.1}%",
-        100.0 * nn_gf / bare_gf
-    );
+    println!("nn training step : {:8.1} ms/step  {:6.1} GFLOP/s", nn_s * 1e3, nn_gf);
+    println!("bare GEMMs       : {:8.1} ms/step  {:6.1} GFLOP/s", bare_s * 1e3, bare_gf);
+    println!("ratio nn / bare throughput: {:.1}%", 100.0 * nn_gf / bare_gf);
     println!("(MSE loss {first_loss:.4} at the first step, {last_loss:.4} at the last)");
 }

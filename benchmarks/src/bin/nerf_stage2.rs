@@ -18,6 +18,7 @@
 //! - `weight-threshold-only`, `uniform-no-skipping`, `uniform-weight-threshold-only` (one
 //!   patch): the reference pipeline with weight thresholding alone, and the fine network alone
 //!   on 192 uniform candidates without skipping and with weight thresholding alone.
+//!
 //! `NERF_STAGE2_MODES=a,b` picks modes by name.
 //!
 //! `... nerf_stage2 -- quality [checkpoint] [steps]` trains stage 2 on the small scene (4
@@ -122,7 +123,9 @@ fn cpu_seconds() -> f64 {
 }
 
 fn load_average() -> String {
-    std::fs::read_to_string("/proc/loadavg").map(|s| s.split_whitespace().next().unwrap_or("?").to_string()).unwrap_or_default()
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().next().unwrap_or("?").to_string())
+        .unwrap_or_default()
 }
 
 fn open(mode: &Mode, steps: usize, checkpoint: &Path) -> Session {
@@ -302,19 +305,43 @@ fn quality(checkpoint: &Path, steps: usize) {
 fn inference_skips(checkpoint: &Path, steps: usize) {
     let small = |m: Mode| Mode { patches: 4, patch_size: 24, ..m };
     let skips = small(ALL_SKIPS);
-    let none = Mode { name: "no-skipping", hierarchical: true, occupancy: false, early_stop: 0.0, weight_threshold: 0.0, ..skips };
+    let none = Mode {
+        name: "no-skipping",
+        hierarchical: true,
+        occupancy: false,
+        early_stop: 0.0,
+        weight_threshold: 0.0,
+        ..skips
+    };
     let renders = [
         skips,
         Mode { name: "all-skips-hierarchical", hierarchical: true, ..skips },
-        Mode { name: "occupancy-only-hierarchical", early_stop: 0.0, weight_threshold: 0.0, ..Mode { hierarchical: true, ..skips } },
-        Mode { name: "early-termination-only-hierarchical", occupancy: false, weight_threshold: 0.0, ..Mode { hierarchical: true, ..skips } },
-        Mode { name: "weight-threshold-only-hierarchical", occupancy: false, early_stop: 0.0, ..Mode { hierarchical: true, ..skips } },
+        Mode {
+            name: "occupancy-only-hierarchical",
+            early_stop: 0.0,
+            weight_threshold: 0.0,
+            ..Mode { hierarchical: true, ..skips }
+        },
+        Mode {
+            name: "early-termination-only-hierarchical",
+            occupancy: false,
+            weight_threshold: 0.0,
+            ..Mode { hierarchical: true, ..skips }
+        },
+        Mode {
+            name: "weight-threshold-only-hierarchical",
+            occupancy: false,
+            early_stop: 0.0,
+            ..Mode { hierarchical: true, ..skips }
+        },
         none,
     ];
     let mut session = open(&skips, steps, checkpoint);
     let mut seg = Segmenter::build(&session).expect("stage 2 builds");
     train_segmentation(&mut session, &mut seg, false).expect("stage 2 trains");
-    println!("nerf_stage2 inference: one head ({steps} steps with every skip, seed 0), masks rendered under each setting");
+    println!(
+        "nerf_stage2 inference: one head ({steps} steps with every skip, seed 0), masks rendered under each setting"
+    );
     println!("| masks rendered with | masks s | ARI | mIoU | PSNR |");
     println!("|---|---|---|---|---|");
     for mode in renders {
@@ -428,7 +455,15 @@ fn density_stats(checkpoint: &Path) {
     let mut sorted = sigma.clone();
     sorted.sort_by(f32::total_cmp);
     let q = |f: f64| sorted[((sorted.len() - 1) as f64 * f) as usize];
-    println!("density quantiles over {} probes: 10% {:.3} 50% {:.3} 90% {:.3} 99% {:.3} max {:.3}", sorted.len(), q(0.1), q(0.5), q(0.9), q(0.99), q(1.0));
+    println!(
+        "density quantiles over {} probes: 10% {:.3} 50% {:.3} 90% {:.3} 99% {:.3} max {:.3}",
+        sorted.len(),
+        q(0.1),
+        q(0.5),
+        q(0.9),
+        q(0.99),
+        q(1.0)
+    );
     for t in [0.01f32, 0.027, 0.1, 0.3, 1.0, 3.0, 10.0] {
         let above = sigma.iter().filter(|&&s| s > t).count() as f64 / sigma.len() as f64;
         println!("  above {t:>6}: {:.1}%", 100.0 * above);

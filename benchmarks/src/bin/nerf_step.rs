@@ -401,7 +401,8 @@ fn main() {
     coarse_stats.take();
     let n_fine = fine_stats.last_n.load(Ordering::Relaxed) as usize;
     let n_coarse = coarse_stats.last_n.load(Ordering::Relaxed) as usize;
-    let full: Vec<Gemm> = network_gemms(&mlp_shape, n_fine).into_iter().chain(network_gemms(&mlp_shape, n_coarse)).collect();
+    let full: Vec<Gemm> =
+        network_gemms(&mlp_shape, n_fine).into_iter().chain(network_gemms(&mlp_shape, n_coarse)).collect();
     let blocks: Vec<Gemm> = blocked(&mlp_shape, n_fine).into_iter().chain(blocked(&mlp_shape, n_coarse)).collect();
     let flops: f64 = full.iter().map(Gemm::flops).sum();
     let biggest = n_fine.max(n_coarse) * 512;
@@ -431,16 +432,14 @@ fn main() {
         "nerf_step: {n_rays} rays, {} coarse + {} importance samples, 2 x NeRF MLP (8x256, skip 5, view 128), {threads} rayon threads, median of {repeats} after 1 warm-up",
         64, 128
     );
-    println!("samples: fine {n_fine} ({:.0}/ray), coarse {n_coarse} ({:.0}/ray)", n_fine as f64 / n_rays as f64, n_coarse as f64 / n_rays as f64);
+    println!(
+        "samples: fine {n_fine} ({:.0}/ray), coarse {n_coarse} ({:.0}/ray)",
+        n_fine as f64 / n_rays as f64,
+        n_coarse as f64 / n_rays as f64
+    );
     println!("full stage-1 step: {:.2} s", step_s);
-    println!(
-        "  fine  forward {:.2} s  backward {:.2} s  adam {:.3} s",
-        parts[0], parts[1], parts[2]
-    );
-    println!(
-        "  coarse forward {:.2} s  backward {:.2} s  adam {:.3} s",
-        parts[3], parts[4], parts[5]
-    );
+    println!("  fine  forward {:.2} s  backward {:.2} s  adam {:.3} s", parts[0], parts[1], parts[2]);
+    println!("  coarse forward {:.2} s  backward {:.2} s  adam {:.3} s", parts[3], parts[4], parts[5]);
     println!("GEMM work of the networks per step: {:.1} GFLOP", flops / 1e9);
     println!("networks (fwd+bwd+adam): {:.2} s  {:.1} GFLOP/s", dense_s, flops / dense_s / 1e9);
     println!("bare GEMMs, full batch : {:.2} s  {:.1} GFLOP/s", full_s, flops / full_s / 1e9);

@@ -36,7 +36,11 @@ fn main() {
     let mut session = Session::from_config(config, &dir).expect("synthetic scene builds");
     let started = Instant::now();
     let stats = train_photometric(&mut session, false).expect("training runs");
-    println!("stage 1: {steps} steps in {:.1} s (last batch PSNR {:.2} dB)", started.elapsed().as_secs_f64(), stats.psnr);
+    println!(
+        "stage 1: {steps} steps in {:.1} s (last batch PSNR {:.2} dB)",
+        started.elapsed().as_secs_f64(),
+        stats.psnr
+    );
     let mut rays = 0usize;
     let started = Instant::now();
     for &i in &session.scene.test {

@@ -70,7 +70,8 @@ fn main() {
                 // Same network: the outputs agree (checked once per block, outside the timing).
                 if ort_times.len() % RUNS_PER_BLOCK == 0 {
                     let (_, tokens) = run(&input);
-                    max_diff = max_diff.max(tokens.iter().zip(&out.tokens).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max));
+                    max_diff =
+                        max_diff.max(tokens.iter().zip(&out.tokens).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max));
                 }
             }
         }
@@ -89,7 +90,12 @@ fn main() {
     println!("native forward: {:8.1} ms wall ({:.0} GFLOP/s), {:.2} CPU s", tn * 1e3, gflop / tn, cpu_s(&native_times));
     if ort.is_some() {
         let to = wall(&ort_times);
-        println!("ONNX Runtime:   {:8.1} ms wall ({:.0} GFLOP/s), {:.2} CPU s", to * 1e3, gflop / to, cpu_s(&ort_times));
+        println!(
+            "ONNX Runtime:   {:8.1} ms wall ({:.0} GFLOP/s), {:.2} CPU s",
+            to * 1e3,
+            gflop / to,
+            cpu_s(&ort_times)
+        );
         println!(
             "native / ONNX Runtime = {:.2}x wall, {:.2}x CPU (target <= 1.5x); max |tokens difference| {max_diff:.2e}",
             tn / to,

@@ -1,6 +1,6 @@
 //! Parity of the ViT teachers with the reference fixtures AS PUBLISHED: reads the real
 //! `weights.pth` and `weights.safetensors` of `vit_tiny` and `vit_tiny_sharp` and checks the
-//! native forward against `io.json` (tokens, normed tokens, [CLS] attention at 224 and 64 px);
+//! native forward against `io.json` (tokens, normed tokens, \[CLS\] attention at 224 and 64 px);
 //! with the `onnx` feature also runs each `model.onnx` under ONNX Runtime (224 px). Also
 //! checks that the repository's compact copy (`fixtures/vit_tiny*`) equals the reference.
 //!

@@ -18,8 +18,7 @@ pub fn write_blendedmvs(scene: &Scene, dir: &Path) -> Result<(), DatasetError> {
     let stems = file_stems(scene);
     let mut pair = format!("{}\n", scene.views.len());
     for (i, (v, stem)) in scene.views.iter().zip(&stems).enumerate() {
-        v.image
-            .save_png(&dir.join("blended_images").join(format!("{stem}.png")))?;
+        v.image.save_png(&dir.join("blended_images").join(format!("{stem}.png")))?;
         if let Some(mask) = &v.mask {
             mask.save_png(&dir.join("masks").join(format!("{stem}.png")))?;
         }
@@ -30,10 +29,7 @@ pub fn write_blendedmvs(scene: &Scene, dir: &Path) -> Result<(), DatasetError> {
             k: Intrinsics::of(&v.camera).k(),
             depth: view_bounds(&scene.extent, &v.camera),
         };
-        write_file(
-            &dir.join("cams").join(format!("{stem}_cam.txt")),
-            format_cam_txt(&cam).as_bytes(),
-        )?;
+        write_file(&dir.join("cams").join(format!("{stem}_cam.txt")), format_cam_txt(&cam).as_bytes())?;
         pair += &format!("{i}\n0\n");
     }
     write_file(&dir.join("cams/pair.txt"), pair.as_bytes())
@@ -47,14 +43,9 @@ pub fn write_nsvf(scene: &Scene, dir: &Path) -> Result<(), DatasetError> {
     let stems = file_stems(scene);
     let (min, max) = match scene.extent {
         SceneExtent::Bounded { min, max } => (min, max),
-        SceneExtent::Unbounded { center, radius } => {
-            (center.map(|c| c - radius), center.map(|c| c + radius))
-        }
+        SceneExtent::Unbounded { center, radius } => (center.map(|c| c - radius), center.map(|c| c + radius)),
         SceneExtent::ForwardFacing { .. } => {
-            return Err(invalid(
-                dir,
-                "the NSVF layout needs a bounding box; forward-facing scenes have none",
-            ))
+            return Err(invalid(dir, "the NSVF layout needs a bounding box; forward-facing scenes have none"))
         }
     };
     let mut k0: Option<Intrinsics> = None;
@@ -66,16 +57,12 @@ pub fn write_nsvf(scene: &Scene, dir: &Path) -> Result<(), DatasetError> {
             if k0.as_ref().is_some_and(|a| !same(a)) {
                 return Err(invalid(
                     dir,
-                    format!(
-                        "view {}: NSVF stores one intrinsics.txt; all views must share K",
-                        v.name
-                    ),
+                    format!("view {}: NSVF stores one intrinsics.txt; all views must share K", v.name),
                 ));
             }
             k0 = Some(k);
             let file = format!("{prefix}_{stem}");
-            v.image
-                .save_png(&dir.join("rgb").join(format!("{file}.png")))?;
+            v.image.save_png(&dir.join("rgb").join(format!("{file}.png")))?;
             if let Some(mask) = &v.mask {
                 mask.save_png(&dir.join("masks").join(format!("{file}.png")))?;
             }
@@ -84,23 +71,12 @@ pub fn write_nsvf(scene: &Scene, dir: &Path) -> Result<(), DatasetError> {
             for row in 0..3 {
                 m[row] = [r[row][0], r[row][1], r[row][2], c[row]];
             }
-            write_file(
-                &dir.join("pose").join(format!("{file}.txt")),
-                format_matrix4(&m).as_bytes(),
-            )?;
+            write_file(&dir.join("pose").join(format!("{file}.txt")), format_matrix4(&m).as_bytes())?;
         }
     }
     let k = k0.ok_or_else(|| invalid(dir, "the scene has no view to write"))?;
-    let km = [
-        [k.fx, 0.0, k.cx, 0.0],
-        [0.0, k.fy, k.cy, 0.0],
-        [0.0, 0.0, 1.0, 0.0],
-        [0.0, 0.0, 0.0, 1.0],
-    ];
+    let km = [[k.fx, 0.0, k.cx, 0.0], [0.0, k.fy, k.cy, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]];
     write_file(&dir.join("intrinsics.txt"), format_matrix4(&km).as_bytes())?;
-    let bbox = format!(
-        "{} {} {} {} {} {} 0.1\n",
-        min[0], min[1], min[2], max[0], max[1], max[2]
-    );
+    let bbox = format!("{} {} {} {} {} {} 0.1\n", min[0], min[1], min[2], max[0], max[1], max[2]);
     write_file(&dir.join("bbox.txt"), bbox.as_bytes())
 }

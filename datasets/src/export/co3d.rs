@@ -7,8 +7,8 @@ use sos_core::scene::Scene;
 
 use super::file_stems;
 use crate::co3d::{
-    ndc_from_intrinsics, pytorch3d_from_pose, write_jgz, FrameAnnotation, ImageAnnotation,
-    MaskAnnotation, SequenceAnnotation, ViewpointAnnotation,
+    ndc_from_intrinsics, pytorch3d_from_pose, write_jgz, FrameAnnotation, ImageAnnotation, MaskAnnotation,
+    SequenceAnnotation, ViewpointAnnotation,
 };
 use crate::pose;
 use crate::views::Intrinsics;
@@ -34,10 +34,7 @@ pub fn write_co3d(
             Some(m) => {
                 let rel = format!("{category}/{sequence}/masks/{stem}.png");
                 m.save_png(&dir.join(&rel))?;
-                Some(MaskAnnotation {
-                    path: rel,
-                    mass: Some(m.data.iter().map(|&x| x as f64).sum()),
-                })
+                Some(MaskAnnotation { path: rel, mass: Some(m.data.iter().map(|&x| x as f64).sum()) })
             }
             None => None,
         };
@@ -47,22 +44,14 @@ pub fn write_co3d(
         frames.push(FrameAnnotation {
             sequence_name: sequence.to_string(),
             frame_number: i as i64,
-            image: ImageAnnotation {
-                path: image_rel,
-                size: [k.height as u64, k.width as u64],
-            },
+            image: ImageAnnotation { path: image_rel, size: [k.height as u64, k.width as u64] },
             mask,
             viewpoint: Some(ViewpointAnnotation {
                 r,
                 t,
                 focal_length,
                 principal_point,
-                intrinsics_format: if isotropic {
-                    "ndc_isotropic"
-                } else {
-                    "ndc_norm_image_bounds"
-                }
-                .into(),
+                intrinsics_format: if isotropic { "ndc_isotropic" } else { "ndc_norm_image_bounds" }.into(),
             }),
         });
     }

@@ -20,7 +20,9 @@ pub fn write_colmap(scene: &Scene, dir: &Path, binary: bool) -> Result<(), Datas
     let model = dir.join("sparse/0");
     let mut cams_bin = (scene.views.len() as u64).to_le_bytes().to_vec();
     let mut imgs_bin = (scene.views.len() as u64).to_le_bytes().to_vec();
-    let mut cams_txt = String::from("# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n");
+    let mut cams_txt = String::from(
+        "# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n",
+    );
     let mut imgs_txt = String::from("# Image list with two lines of data per image:\n#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n#   POINTS2D[] as (X, Y, POINT3D_ID)\n");
     for (i, (v, stem)) in scene.views.iter().zip(&stems).enumerate() {
         let id = i as i32 + 1;
@@ -48,17 +50,12 @@ pub fn write_colmap(scene: &Scene, dir: &Path, binary: bool) -> Result<(), Datas
         let rc = pose::mul3v(&rq, pose::column(&p, 3));
         let t = [-rc[0], -rc[1], -rc[2]];
         imgs_bin.extend(id.to_le_bytes());
-        q.iter()
-            .chain(&t)
-            .for_each(|x| imgs_bin.extend(x.to_le_bytes()));
+        q.iter().chain(&t).for_each(|x| imgs_bin.extend(x.to_le_bytes()));
         imgs_bin.extend(id.to_le_bytes());
         imgs_bin.extend(name.as_bytes());
         imgs_bin.push(0);
         imgs_bin.extend(0u64.to_le_bytes());
-        imgs_txt += &format!(
-            "{id} {} {} {} {} {} {} {} {id} {name}\n\n",
-            q[0], q[1], q[2], q[3], t[0], t[1], t[2]
-        );
+        imgs_txt += &format!("{id} {} {} {} {} {} {} {} {id} {name}\n\n", q[0], q[1], q[2], q[3], t[0], t[1], t[2]);
     }
     if binary {
         write_file(&model.join("cameras.bin"), &cams_bin)?;

@@ -19,8 +19,7 @@ pub fn write_tanks_temples(scene: &Scene, dir: &Path) -> Result<(), DatasetError
         for &i in indices {
             let (v, stem) = (&scene.views[i], &stems[i]);
             let cam = &v.camera;
-            v.image
-                .save_png(&base.join("rgb").join(format!("{stem}.png")))?;
+            v.image.save_png(&base.join("rgb").join(format!("{stem}.png")))?;
             if let Some(mask) = &v.mask {
                 mask.save_png(&base.join("mask").join(format!("{stem}.png")))?;
             }
@@ -29,21 +28,10 @@ pub fn write_tanks_temples(scene: &Scene, dir: &Path) -> Result<(), DatasetError
             for k in 0..3 {
                 m[k] = [r[k][0], r[k][1], r[k][2], c[k]];
             }
-            write_file(
-                &base.join("pose").join(format!("{stem}.txt")),
-                format_matrix4(&m).as_bytes(),
-            )?;
+            write_file(&base.join("pose").join(format!("{stem}.txt")), format_matrix4(&m).as_bytes())?;
             let (fx, fy, cx, cy) = (cam.fx as f64, cam.fy as f64, cam.cx as f64, cam.cy as f64);
-            let k = [
-                [fx, 0.0, cx, 0.0],
-                [0.0, fy, cy, 0.0],
-                [0.0, 0.0, 1.0, 0.0],
-                [0.0, 0.0, 0.0, 1.0],
-            ];
-            write_file(
-                &base.join("intrinsics").join(format!("{stem}.txt")),
-                format_matrix4(&k).as_bytes(),
-            )?;
+            let k = [[fx, 0.0, cx, 0.0], [0.0, fy, cy, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]];
+            write_file(&base.join("intrinsics").join(format!("{stem}.txt")), format_matrix4(&k).as_bytes())?;
         }
     }
     Ok(())

@@ -34,10 +34,7 @@ pub fn sphere(o: Vec3, d: Vec3, centre: Vec3, radius: f32) -> Option<Hit> {
         return None;
     }
     let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
-    Some((
-        t,
-        normalize([p[0] - centre[0], p[1] - centre[1], p[2] - centre[2]]),
-    ))
+    Some((t, normalize([p[0] - centre[0], p[1] - centre[1], p[2] - centre[2]])))
 }
 
 /// Horizontal disk at height `y` (centre `(cx, cz)`), facing `ny` (+1 up, −1 down).
@@ -74,10 +71,7 @@ pub fn cylinder(o: Vec3, d: Vec3, cx: f32, cz: f32, y0: f32, y1: f32, radius: f3
             }
         }
     }
-    let caps = nearest(
-        disk(o, d, cx, cz, y1, radius, 1.0),
-        disk(o, d, cx, cz, y0, radius, -1.0),
-    );
+    let caps = nearest(disk(o, d, cx, cz, y1, radius, 1.0), disk(o, d, cx, cz, y0, radius, -1.0));
     nearest(side, caps)
 }
 
@@ -144,20 +138,12 @@ pub fn yawed_box(o: Vec3, d: Vec3, centre: Vec3, half: Vec3, yaw: f32) -> Option
     if t_near > t_far || t_far <= T_MIN {
         return None;
     }
-    let (t, axis) = if t_near > T_MIN {
-        (t_near, axis_near)
-    } else {
-        (t_far, axis_far)
-    };
+    let (t, axis) = if t_near > T_MIN { (t_near, axis_near) } else { (t_far, axis_far) };
     let p = lo[axis] + t * ld[axis];
     let mut n_local = [0.0; 3];
     n_local[axis] = p.signum();
     // Box frame -> world is the yaw rotation.
-    let n = [
-        c * n_local[0] + s * n_local[2],
-        n_local[1],
-        -s * n_local[0] + c * n_local[2],
-    ];
+    let n = [c * n_local[0] + s * n_local[2], n_local[1], -s * n_local[0] + c * n_local[2]];
     Some((t, n))
 }
 
@@ -213,11 +199,7 @@ pub fn room_exit(o: Vec3, d: Vec3, min: Vec3, max: Vec3) -> (f32, Vec3, usize) {
         if d[a].abs() < 1e-12 {
             continue;
         }
-        let (plane, face, normal_sign) = if d[a] > 0.0 {
-            (max[a], 2 * a + 1, -1.0)
-        } else {
-            (min[a], 2 * a, 1.0)
-        };
+        let (plane, face, normal_sign) = if d[a] > 0.0 { (max[a], 2 * a + 1, -1.0) } else { (min[a], 2 * a, 1.0) };
         let t = (plane - o[a]) / d[a];
         if t < best.0 {
             let mut n = [0.0; 3];
@@ -245,14 +227,7 @@ mod tests {
         let (t, n) = yawed_box(o, d, [0.0, 0.5, 0.0], [0.5, 0.5, 0.5], 0.0).unwrap();
         assert!((t - 4.5).abs() < 1e-5 && (n[2] - 1.0).abs() < 1e-5);
         // A 45° yawed unit cube presents an edge at distance √2/2.
-        let (t, _) = yawed_box(
-            o,
-            d,
-            [0.0, 0.5, 0.0],
-            [0.5, 0.5, 0.5],
-            std::f32::consts::FRAC_PI_4,
-        )
-        .unwrap();
+        let (t, _) = yawed_box(o, d, [0.0, 0.5, 0.0], [0.5, 0.5, 0.5], std::f32::consts::FRAC_PI_4).unwrap();
         assert!((t - (5.0 - 0.5f32.sqrt())).abs() < 1e-4, "{t}");
         // Looking down onto a cylinder hits its top cap.
         let (t, n) = cylinder([0.0, 3.0, 0.0], [0.0, -1.0, 0.0], 0.0, 0.0, 0.0, 1.0, 0.5).unwrap();

@@ -179,16 +179,10 @@ impl SyntheticConfig {
     /// Checks the values; the error names the key and the allowed range.
     pub fn check(&self) -> Result<(), String> {
         if !(8..=8192).contains(&self.width) || !(8..=8192).contains(&self.height) {
-            return Err(format!(
-                "keys `width`/`height`: must be within 8..=8192, got {}x{}",
-                self.width, self.height
-            ));
+            return Err(format!("keys `width`/`height`: must be within 8..=8192, got {}x{}", self.width, self.height));
         }
         if !(2..=10_000).contains(&self.views) {
-            return Err(format!(
-                "key `views`: must be within 2..=10000, got {}",
-                self.views
-            ));
+            return Err(format!("key `views`: must be within 2..=10000, got {}", self.views));
         }
         if self.hold_out_every == 1 {
             return Err("key `hold_out_every`: 1 would hold out every view; use 0 or ≥ 2".into());
@@ -253,10 +247,7 @@ pub fn generate(cfg: &SyntheticConfig) -> Scene {
                 })
                 .collect();
             let pad = 0.05;
-            let extent = SceneExtent::Bounded {
-                min: ROOM_MIN.map(|v| v - pad),
-                max: ROOM_MAX.map(|v| v + pad),
-            };
+            let extent = SceneExtent::Bounded { min: ROOM_MIN.map(|v| v - pad), max: ROOM_MAX.map(|v| v + pad) };
             let render_path = rig::orbit_path(cfg.render_path_views, w, h);
             Scene {
                 name: "synthetic-object-centric".into(),
@@ -322,27 +313,13 @@ pub fn generate(cfg: &SyntheticConfig) -> Scene {
                 })
                 .collect();
             let (near, far) = (0.9 * near, 1.05 * far);
-            let extent = SceneExtent::ForwardFacing {
-                near,
-                far,
-                focal: focal as f32,
-                width: w as f32,
-                height: h as f32,
-            };
-            let render_path =
-                pose::llff_spiral(&recentred, near as f64, far as f64, cfg.render_path_views)
-                    .iter()
-                    .map(|p| pose::to_camera(p, w, h, focal))
-                    .collect();
-            Scene {
-                name: "synthetic-forward-facing".into(),
-                views,
-                train,
-                test,
-                extent,
-                near,
-                render_path,
-            }
+            let extent =
+                SceneExtent::ForwardFacing { near, far, focal: focal as f32, width: w as f32, height: h as f32 };
+            let render_path = pose::llff_spiral(&recentred, near as f64, far as f64, cfg.render_path_views)
+                .iter()
+                .map(|p| pose::to_camera(p, w, h, focal))
+                .collect();
+            Scene { name: "synthetic-forward-facing".into(), views, train, test, extent, near, render_path }
         }
         Rig::Hemisphere | Rig::Grazing | Rig::Random => unreachable!("refused by `check` for the built-in world"),
     }
@@ -364,13 +341,7 @@ mod tests {
     use super::*;
 
     fn small(rig: Rig) -> SyntheticConfig {
-        SyntheticConfig {
-            rig,
-            width: 160,
-            height: 120,
-            views: 16,
-            ..Default::default()
-        }
+        SyntheticConfig { rig, width: 160, height: 120, views: 16, ..Default::default() }
     }
 
     fn fg_fraction(v: &View) -> f32 {
@@ -387,10 +358,7 @@ mod tests {
             assert_eq!(x.image, y.image);
             assert_eq!(x.mask, y.mask);
         }
-        let c = generate(&SyntheticConfig {
-            seed: 7,
-            ..small(Rig::ObjectCentric)
-        });
+        let c = generate(&SyntheticConfig { seed: 7, ..small(Rig::ObjectCentric) });
         assert_ne!(a.views[1].image, c.views[1].image);
     }
 
@@ -402,32 +370,21 @@ mod tests {
         assert_eq!(scene.test, vec![0, 8]);
         assert_eq!(scene.train.len(), 14);
         assert_eq!(scene.render_path.len(), 60);
-        let SceneExtent::Bounded { min, max } = scene.extent else {
-            panic!("not bounded")
-        };
+        let SceneExtent::Bounded { min, max } = scene.extent else { panic!("not bounded") };
         for v in &scene.views {
             v.camera.validate().unwrap();
             let o = v.camera.origin();
-            assert!(
-                (0..3).all(|k| o[k] > min[k] && o[k] < max[k]),
-                "camera outside room"
-            );
+            assert!((0..3).all(|k| o[k] > min[k] && o[k] < max[k]), "camera outside room");
             // The object centre projects to the image centre, and is foreground there.
             let px = v.camera.project(OBJECT_CENTRE).unwrap();
-            assert!(
-                (px[0] - 80.0).abs() < 0.01 && (px[1] - 60.0).abs() < 0.01,
-                "{px:?}"
-            );
+            assert!((px[0] - 80.0).abs() < 0.01 && (px[1] - 60.0).abs() < 0.01, "{px:?}");
             let m = v.mask.as_ref().unwrap();
             assert_eq!(m.data[60 * 160 + 80], 1.0);
             assert!(v.image.data.iter().all(|c| (0.0..=1.0).contains(c)));
         }
         for &i in &scene.test {
             let f = fg_fraction(&scene.views[i]);
-            assert!(
-                (0.05..=0.4).contains(&f),
-                "view {i}: foreground fraction {f}"
-            );
+            assert!((0.05..=0.4).contains(&f), "view {i}: foreground fraction {f}");
         }
         for cam in &scene.render_path {
             cam.validate().unwrap();
@@ -438,38 +395,21 @@ mod tests {
     fn forward_facing_scene_is_recentred_and_bounded() {
         let scene = generate(&small(Rig::ForwardFacing));
         scene.validate().unwrap();
-        let SceneExtent::ForwardFacing {
-            near,
-            far,
-            focal,
-            width,
-            height,
-        } = scene.extent
-        else {
+        let SceneExtent::ForwardFacing { near, far, focal, width, height } = scene.extent else {
             panic!("not forward-facing")
         };
-        assert!(
-            near > 0.5 && far > 2.0 * near && far < 20.0,
-            "near {near} far {far}"
-        );
+        assert!(near > 0.5 && far > 2.0 * near && far < 20.0, "near {near} far {far}");
         assert_eq!((width, height), (160.0, 120.0));
         assert!((focal - scene.views[0].camera.fx).abs() < 1e-4);
         // The mean camera is the identity pose.
-        let poses: Vec<Pose> = scene
-            .views
-            .iter()
-            .map(|v| pose::from_camera(&v.camera))
-            .collect();
+        let poses: Vec<Pose> = scene.views.iter().map(|v| pose::from_camera(&v.camera)).collect();
         let avg = pose::poses_avg(&poses);
         for (a, b) in avg.iter().flatten().zip(pose::IDENTITY.iter().flatten()) {
             assert!((a - b).abs() < 1e-5, "{avg:?}");
         }
         for &i in &scene.test {
             let f = fg_fraction(&scene.views[i]);
-            assert!(
-                (0.05..=0.4).contains(&f),
-                "view {i}: foreground fraction {f}"
-            );
+            assert!((0.05..=0.4).contains(&f), "view {i}: foreground fraction {f}");
         }
         // The object lies between near and far in front of every camera.
         for v in &scene.views {
@@ -521,8 +461,7 @@ mod tests {
         assert_eq!(cfg.views, 12);
         assert_eq!(cfg.width, 400);
         assert!(toml::from_str::<SyntheticConfig>("veiws = 12").is_err());
-        let boxed: Box<dyn DatasetConfig> =
-            toml::from_str("kind = \"synthetic\"\nviews = 1").unwrap();
+        let boxed: Box<dyn DatasetConfig> = toml::from_str("kind = \"synthetic\"\nviews = 1").unwrap();
         let err = boxed.open(Path::new(".")).unwrap_err().to_string();
         assert!(err.contains("views"), "{err}");
         assert!(sos_core::registry::find::<dyn DatasetConfig>("synthetic").is_some());
@@ -540,10 +479,7 @@ mod tests {
         assert!(secs < 60.0, "generation took {secs} s");
         for &i in &scene.test {
             let f = fg_fraction(&scene.views[i]);
-            assert!(
-                (0.05..=0.4).contains(&f),
-                "view {i}: foreground fraction {f}"
-            );
+            assert!((0.05..=0.4).contains(&f), "view {i}: foreground fraction {f}");
         }
     }
 }

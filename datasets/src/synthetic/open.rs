@@ -83,7 +83,7 @@ impl OpenWorld {
         let mut best = Self::foreground(o, d);
         for i in 0..TOWERS.len() {
             if let Some(h) = Self::tower_hit(i, o, d) {
-                if best.map_or(true, |(b, _)| h.0 < b.0) {
+                if best.is_none_or(|(b, _)| h.0 < b.0) {
                     best = Some((h, Surface::Tower(i)));
                 }
             }
@@ -91,7 +91,10 @@ impl OpenWorld {
         if d[1] < -1e-6 {
             let t = -o[1] / d[1];
             let p = axpy(o, t, d);
-            if t > 1e-4 && p[0] * p[0] + p[2] * p[2] < GROUND_RADIUS * GROUND_RADIUS && best.map_or(true, |(b, _)| t < b.0) {
+            if t > 1e-4
+                && p[0] * p[0] + p[2] * p[2] < GROUND_RADIUS * GROUND_RADIUS
+                && best.is_none_or(|(b, _)| t < b.0)
+            {
                 best = Some(((t, [0.0, 1.0, 0.0]), Surface::Ground));
             }
         }

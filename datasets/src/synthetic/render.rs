@@ -25,11 +25,7 @@ pub struct Rendered {
 pub fn render_view<W: Trace + Sync>(world: &W, cam: &Camera, depth_origin: Vec3, depth_axis: Vec3) -> Rendered {
     let (w, h) = (cam.width as usize, cam.height as usize);
     let mut image = RgbImage::new(w, h);
-    let mut mask = GrayImage {
-        width: w,
-        height: h,
-        data: vec![0.0; w * h],
-    };
+    let mut mask = GrayImage { width: w, height: h, data: vec![0.0; w * h] };
     let origin = cam.origin();
     let depth_range = image
         .data
@@ -48,13 +44,6 @@ pub fn render_view<W: Trace + Sync>(world: &W, cam: &Camera, depth_origin: Vec3,
             }
             range
         })
-        .reduce(
-            || [f32::INFINITY, f32::NEG_INFINITY],
-            |a, b| [a[0].min(b[0]), a[1].max(b[1])],
-        );
-    Rendered {
-        image,
-        mask,
-        depth_range,
-    }
+        .reduce(|| [f32::INFINITY, f32::NEG_INFINITY], |a, b| [a[0].min(b[0]), a[1].max(b[1])]);
+    Rendered { image, mask, depth_range }
 }

@@ -45,11 +45,7 @@ fn orbit_camera(azimuth: f32, elevation: f32, width: u32, height: u32) -> Camera
     let c = OBJECT_CENTRE;
     let (sa, ca) = azimuth.sin_cos();
     let (se, ce) = elevation.sin_cos();
-    let eye = [
-        c[0] + ORBIT_RADIUS * ce * sa,
-        c[1] + ORBIT_RADIUS * se,
-        c[2] + ORBIT_RADIUS * ce * ca,
-    ];
+    let eye = [c[0] + ORBIT_RADIUS * ce * sa, c[1] + ORBIT_RADIUS * se, c[2] + ORBIT_RADIUS * ce * ca];
     Camera::look_at(eye, c, [0.0, 1.0, 0.0], width, height, focal_for(width))
 }
 
@@ -91,14 +87,7 @@ pub fn forward_facing(n: usize, width: u32, height: u32, rng: &mut SplitMix) -> 
             0.5
         }
     };
-    let base = Camera::look_at(
-        GRID_CENTRE,
-        OBJECT_CENTRE,
-        [0.0, 1.0, 0.0],
-        width,
-        height,
-        focal_for(width),
-    );
+    let base = Camera::look_at(GRID_CENTRE, OBJECT_CENTRE, [0.0, 1.0, 0.0], width, height, focal_for(width));
     (0..n)
         .map(|i| {
             let (r, c) = (i / cols, i % cols);

@@ -8,11 +8,7 @@ pub type Rgb = [f32; 3];
 
 /// Linear blend `a + t (b − a)`.
 pub fn mix(a: Rgb, b: Rgb, t: f32) -> Rgb {
-    [
-        a[0] + t * (b[0] - a[0]),
-        a[1] + t * (b[1] - a[1]),
-        a[2] + t * (b[2] - a[2]),
-    ]
+    [a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]), a[2] + t * (b[2] - a[2])]
 }
 
 /// Scales a colour.
@@ -64,11 +60,7 @@ pub fn value_noise(p: [f32; 3], seed: u32) -> f32 {
     let lerp = |a: f32, b: f32, t: f32| a + t * (b - a);
     let mut x = [0.0; 4];
     for (n, (dj, dk)) in [(0, 0), (1, 0), (0, 1), (1, 1)].into_iter().enumerate() {
-        x[n] = lerp(
-            hash(i, j + dj, k + dk, seed),
-            hash(i + 1, j + dj, k + dk, seed),
-            u,
-        );
+        x[n] = lerp(hash(i, j + dj, k + dk, seed), hash(i + 1, j + dj, k + dk, seed), u);
     }
     lerp(lerp(x[0], x[1], v), lerp(x[2], x[3], v), w)
 }
@@ -77,10 +69,7 @@ pub fn value_noise(p: [f32; 3], seed: u32) -> f32 {
 pub fn fbm(p: [f32; 3], size: f32, seed: u32) -> f32 {
     let q = [p[0] / size, p[1] / size, p[2] / size];
     let a = value_noise(q, seed);
-    let b = value_noise(
-        [2.0 * q[0] + 17.3, 2.0 * q[1] + 5.1, 2.0 * q[2] + 9.7],
-        seed ^ 0x9e37,
-    );
+    let b = value_noise([2.0 * q[0] + 17.3, 2.0 * q[1] + 5.1, 2.0 * q[2] + 9.7], seed ^ 0x9e37);
     0.65 * a + 0.35 * b
 }
 

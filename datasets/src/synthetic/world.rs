@@ -96,10 +96,7 @@ pub struct World {
 impl World {
     /// The room with noise patterns drawn from `seed`.
     pub fn new(seed: u64) -> Self {
-        World {
-            seed: (seed ^ (seed >> 32)) as u32,
-            light: normalize([0.45, 1.0, 0.3]),
-        }
+        World { seed: (seed ^ (seed >> 32)) as u32, light: normalize([0.45, 1.0, 0.3]) }
     }
 
     /// Nearest object hit (everything except the room), for primary and shadow rays.
@@ -107,27 +104,15 @@ impl World {
         let c = OBJECT_CENTRE;
         let candidates = [
             (sphere(o, d, c, OBJECT_RADIUS), Surface::Sphere),
-            (
-                cylinder(o, d, c[0], c[2], 0.0, PEDESTAL_TOP, PEDESTAL_RADIUS),
-                Surface::Pedestal,
-            ),
-            (
-                yawed_box(o, d, [BOX_AT[0], 0.35, BOX_AT[1]], [0.35, 0.35, 0.35], 0.5),
-                Surface::Box,
-            ),
-            (
-                cylinder(o, d, CYLINDER_AT[0], CYLINDER_AT[1], 0.0, 1.0, 0.3),
-                Surface::Cylinder,
-            ),
-            (
-                cone(o, d, CONE_AT[0], CONE_AT[1], 0.0, 1.2, 0.4),
-                Surface::Cone,
-            ),
+            (cylinder(o, d, c[0], c[2], 0.0, PEDESTAL_TOP, PEDESTAL_RADIUS), Surface::Pedestal),
+            (yawed_box(o, d, [BOX_AT[0], 0.35, BOX_AT[1]], [0.35, 0.35, 0.35], 0.5), Surface::Box),
+            (cylinder(o, d, CYLINDER_AT[0], CYLINDER_AT[1], 0.0, 1.0, 0.3), Surface::Cylinder),
+            (cone(o, d, CONE_AT[0], CONE_AT[1], 0.0, 1.2, 0.4), Surface::Cone),
         ];
         let mut best: Option<(Hit, Surface)> = None;
         for (hit, surface) in candidates {
             if let Some(h) = hit {
-                if best.map_or(true, |(b, _)| h.0 < b.0) {
+                if best.is_none_or(|(b, _)| h.0 < b.0) {
                     best = Some((h, surface));
                 }
             }
@@ -173,36 +158,23 @@ impl World {
             // Left (−X) wall: terracotta checkers.
             Surface::Room(0) => {
                 let c = checker(p[2], p[1], 0.8);
-                scale(
-                    mix([0.45, 0.55, 0.5], [0.8, 0.82, 0.78], c),
-                    0.85 + 0.25 * noise(0.4, 3),
-                )
+                scale(mix([0.45, 0.55, 0.5], [0.8, 0.82, 0.78], c), 0.85 + 0.25 * noise(0.4, 3))
             }
             // Right (+X) wall: horizontal yellow stripes.
             Surface::Room(1) => {
                 let s = stripes(p[1], 0.6);
-                scale(
-                    mix([0.9, 0.8, 0.35], [0.65, 0.65, 0.6], s),
-                    0.85 + 0.25 * noise(0.4, 4),
-                )
+                scale(mix([0.9, 0.8, 0.35], [0.65, 0.65, 0.6], s), 0.85 + 0.25 * noise(0.4, 4))
             }
             // Back (−Z) wall: vertical blue stripes.
             Surface::Room(4) => {
                 let s = stripes(p[0], 0.7);
-                scale(
-                    mix([0.35, 0.5, 0.78], [0.88, 0.9, 0.92], s),
-                    0.85 + 0.25 * noise(0.4, 5),
-                )
+                scale(mix([0.35, 0.5, 0.78], [0.88, 0.9, 0.92], s), 0.85 + 0.25 * noise(0.4, 5))
             }
             // Front (+Z) wall: green noise.
             Surface::Room(_) => mix([0.35, 0.6, 0.4], [0.75, 0.85, 0.55], noise(0.3, 6)),
             // Object: orange/white checkers in longitude/latitude, about 0.2 m squares.
             Surface::Sphere => {
-                let q = normalize([
-                    p[0] - OBJECT_CENTRE[0],
-                    p[1] - OBJECT_CENTRE[1],
-                    p[2] - OBJECT_CENTRE[2],
-                ]);
+                let q = normalize([p[0] - OBJECT_CENTRE[0], p[1] - OBJECT_CENTRE[1], p[2] - OBJECT_CENTRE[2]]);
                 let lon = q[2].atan2(q[0]) / std::f32::consts::TAU; // [-0.5, 0.5]
                 let lat = q[1].clamp(-1.0, 1.0).asin() / std::f32::consts::PI; // [-0.5, 0.5]
                 let c = checker(lon * 8.0, lat * 4.0 + 0.5, 1.0);
@@ -210,10 +182,7 @@ impl World {
                 // detail no grid can hold.
                 let polar = ((q[1].abs() - 0.75) / 0.2).clamp(0.0, 1.0);
                 let c = c * (1.0 - polar) + 0.3 * polar;
-                scale(
-                    mix([0.9, 0.12, 0.1], [0.95, 0.55, 0.1], c),
-                    0.9 + 0.15 * noise(0.25, 7),
-                )
+                scale(mix([0.9, 0.12, 0.1], [0.95, 0.55, 0.1], c), 0.9 + 0.15 * noise(0.25, 7))
             }
             Surface::Pedestal => {
                 let s = stripes(p[1], 0.2);
@@ -222,11 +191,7 @@ impl World {
             Surface::Box => scale([0.2, 0.35, 0.8], 0.7 + 0.5 * noise(0.3, 8)),
             Surface::Cylinder => {
                 let a = (p[2] - CYLINDER_AT[1]).atan2(p[0] - CYLINDER_AT[0]);
-                mix(
-                    [0.2, 0.6, 0.25],
-                    [0.85, 0.9, 0.8],
-                    stripes(a, std::f32::consts::TAU / 8.0),
-                )
+                mix([0.2, 0.6, 0.25], [0.85, 0.9, 0.8], stripes(a, std::f32::consts::TAU / 8.0))
             }
             Surface::Cone => scale([0.6, 0.3, 0.7], 0.75 + 0.4 * noise(0.3, 9)),
         }

@@ -165,4 +165,3 @@ impl<L: Level> HierarchicalSampling for CoarseFine<L> {
         Some(&mut self.coarse)
     }
 }
-

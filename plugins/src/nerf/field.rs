@@ -144,7 +144,6 @@ impl RadianceField for NerfNet {
 }
 
 impl sos_core::plugin::FrozenPass for NerfNet {
-
     fn forward_with_seg_input(
         &self,
         positions: &[Vec3],
@@ -287,7 +286,15 @@ mod tests {
     use sos_core::scene::SceneExtent;
 
     fn tiny_config() -> NerfConfig {
-        NerfConfig { depth: 3, width: 8, skip: 2, view_width: 4, pos_frequencies: 2, dir_frequencies: 1, ..Default::default() }
+        NerfConfig {
+            depth: 3,
+            width: 8,
+            skip: 2,
+            view_width: 4,
+            pos_frequencies: 2,
+            dir_frequencies: 1,
+            ..Default::default()
+        }
     }
 
     fn field(seed: u64) -> NerfField {
@@ -324,7 +331,11 @@ mod tests {
     fn segmentation_input_is_trunk_features_then_encoding() {
         let f = field(3);
         assert_eq!(f.seg_input_dim(), 8 + 3 * 5);
-        let reference = NerfField::new(NerfConfig::default(), Contraction::new(&SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] }), 0);
+        let reference = NerfField::new(
+            NerfConfig::default(),
+            Contraction::new(&SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] }),
+            0,
+        );
         assert_eq!(reference.seg_input_dim(), 319, "the reference head is 319 -> 128 -> 2");
         let mut out = vec![0.0; 2 * f.seg_input_dim()];
         f.seg_input(&[[0.5, 0.0, 0.0], [0.0, 0.5, 0.0]], &mut out);

@@ -41,7 +41,9 @@ impl Limits {
         }
         if config.skip >= config.depth {
             let depth = config.depth;
-            return Err(self.invalid("skip", format!("must be 0 (no skip) or a trunk layer in 1..{depth} (depth = {depth})")));
+            return Err(
+                self.invalid("skip", format!("must be 0 (no skip) or a trunk layer in 1..{depth} (depth = {depth})"))
+            );
         }
         if !(config.lr > 0.0 && config.lr.is_finite()) {
             return Err(self.invalid("lr", "must be a positive number"));
@@ -52,7 +54,11 @@ impl Limits {
 
 /// Test helper: building `config` fails with [`BuildError::Invalid`] naming `key`.
 #[cfg(test)]
-pub fn assert_rejects(config: &dyn sos_core::plugin::RadianceFieldConfig, extent: &sos_core::scene::SceneExtent, key: &str) {
+pub fn assert_rejects(
+    config: &dyn sos_core::plugin::RadianceFieldConfig,
+    extent: &sos_core::scene::SceneExtent,
+    key: &str,
+) {
     match config.build(extent, 0) {
         Err(BuildError::Invalid { key: k, .. }) => assert_eq!(k, key),
         Err(e) => panic!("unexpected error {e}"),

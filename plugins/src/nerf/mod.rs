@@ -27,11 +27,11 @@ use sos_core::plugin::{RadianceField, RadianceFieldConfig};
 use sos_core::render::contraction::Contraction;
 use sos_core::scene::SceneExtent;
 
-use limits::Limits;
 pub use coarse_fine::{CoarseFine, Level};
 pub use field::{
     mlp_gradients, mlp_parameters, normalised_coords, read_params, set_mlp_parameters, write_params, NerfField, NerfNet,
 };
+use limits::Limits;
 pub use network::{DensityActivation, NerfMlp, NerfShape, NerfTape};
 
 /// Settings of the `nerf` field.

@@ -46,8 +46,11 @@ impl DensityActivation {
                 }
             }
         };
-        // `f32::max` returns the other operand for NaN, so NaN becomes 0 here.
-        s.max(0.0).min(MAX_DENSITY)
+        // `f32::max` returns the other operand for NaN, so NaN becomes 0 here (`clamp` would
+        // keep the NaN).
+        #[allow(clippy::manual_clamp)]
+        let clamped = s.max(0.0).min(MAX_DENSITY);
+        clamped
     }
 
     /// `∂σ/∂raw` (0 where the clamp or the ReLU is active).
@@ -199,7 +202,7 @@ impl NerfMlp {
     pub fn new(shape: NerfShape, density_activation: DensityActivation, rng: &mut impl Rng) -> Self {
         let pe = shape.pe_dim();
         let mut dims = vec![pe];
-        dims.extend(std::iter::repeat(shape.width).take(shape.depth));
+        dims.extend(std::iter::repeat_n(shape.width, shape.depth));
         let trunk = Mlp::with_skip(&dims, shape.skip, Activation::Relu, Activation::Identity, rng);
         NerfMlp {
             trunk,
@@ -298,7 +301,9 @@ impl NerfMlp {
     ) {
         let (d, w, pe_dim) = (self.in_dim, self.width(), self.pe_dim());
         let mut h = Vec::new();
-        for (block, ((rows, dir), col)) in rows.chunks(CHUNK).zip(dirs.chunks(CHUNK)).zip(rgb.chunks_mut(CHUNK)).enumerate() {
+        for (block, ((rows, dir), col)) in
+            rows.chunks(CHUNK).zip(dirs.chunks(CHUNK)).zip(rgb.chunks_mut(CHUNK)).enumerate()
+        {
             let n = rows.len();
             h.resize(n * w, 0.0);
             h.par_chunks_mut(w).zip(rows.par_iter()).for_each(|(out, &r)| {
@@ -505,7 +510,15 @@ mod tests {
     use rand::SeedableRng;
 
     fn tiny(act: DensityActivation) -> NerfMlp {
-        let shape = NerfShape { in_dim: 3, pos_frequencies: 2, dir_frequencies: 1, depth: 4, width: 6, skip: Some(2), view_width: 5 };
+        let shape = NerfShape {
+            in_dim: 3,
+            pos_frequencies: 2,
+            dir_frequencies: 1,
+            depth: 4,
+            width: 6,
+            skip: Some(2),
+            view_width: 5,
+        };
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
         let mut m = NerfMlp::new(shape, act, &mut rng);
         // Positive biases so that most ReLUs and the density are active.
@@ -570,7 +583,15 @@ mod tests {
 
     #[test]
     fn forward_density_and_features_agree_across_blocks() {
-        let shape = NerfShape { in_dim: 3, pos_frequencies: 3, dir_frequencies: 2, depth: 3, width: 8, skip: Some(2), view_width: 4 };
+        let shape = NerfShape {
+            in_dim: 3,
+            pos_frequencies: 3,
+            dir_frequencies: 2,
+            depth: 3,
+            width: 8,
+            skip: Some(2),
+            view_width: 4,
+        };
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
         let m = NerfMlp::new(shape, DensityActivation::Softplus, &mut rng);
         let n = CHUNK + 19;
@@ -601,7 +622,15 @@ mod tests {
     /// over those points bit for bit (rows from one batch serve another batch's order).
     #[test]
     fn colour_from_kept_trunk_rows_matches_forward() {
-        let shape = NerfShape { in_dim: 3, pos_frequencies: 3, dir_frequencies: 2, depth: 3, width: 8, skip: Some(2), view_width: 4 };
+        let shape = NerfShape {
+            in_dim: 3,
+            pos_frequencies: 3,
+            dir_frequencies: 2,
+            depth: 3,
+            width: 8,
+            skip: Some(2),
+            view_width: 4,
+        };
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
         let m = NerfMlp::new(shape, DensityActivation::Softplus, &mut rng);
         let n = 2 * CHUNK + 37;

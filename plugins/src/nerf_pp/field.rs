@@ -141,7 +141,7 @@ impl NerfPpNet {
     }
 
     /// The networks with their points: (network, indices, coordinates, density scales).
-    fn parts<'a>(&'a self, s: &'a Split) -> Vec<(&'a NerfMlp, &'a [u32], &'a [f32], &'a [f32])> {
+    fn parts<'a>(&'a self, s: &'a Split) -> Vec<Part<'a>> {
         let mut parts = vec![(&self.fg, &s.fg_idx[..], &s.fg_coords[..], &s.fg_scale[..])];
         if let Some(bg) = &self.bg {
             parts.push((bg, &s.bg_idx[..], &s.bg_coords[..], &s.bg_scale[..]));
@@ -160,9 +160,20 @@ impl Level for NerfPpNet {
     }
 }
 
+/// One network of a split batch: the network, its samples' indices, their coordinates and
+/// density scales.
+type Part<'a> = (&'a NerfMlp, &'a [u32], &'a [f32], &'a [f32]);
+
 /// Writes one network's density (times its sample's density scale) and colour, one per sample
 /// of `idx`, into those samples' places of `density` and `rgb`.
-fn scatter_density_colour(idx: &[u32], scale: &[f32], d: &[f32], c: &[[f32; 3]], density: &mut [f32], rgb: &mut [[f32; 3]]) {
+fn scatter_density_colour(
+    idx: &[u32],
+    scale: &[f32],
+    d: &[f32],
+    c: &[[f32; 3]],
+    density: &mut [f32],
+    rgb: &mut [[f32; 3]],
+) {
     for (j, &i) in idx.iter().enumerate() {
         density[i as usize] = d[j] * scale[j];
     }
@@ -321,7 +332,6 @@ impl RadianceField for NerfPpNet {
 }
 
 impl sos_core::plugin::FrozenPass for NerfPpNet {
-
     fn forward_with_seg_input(
         &self,
         positions: &[Vec3],
@@ -485,7 +495,10 @@ mod tests {
                     minus.mlps_mut()[net].params_mut()[pi].value[j] -= h;
                     let fd = (loss(&plus) - loss(&minus)) / (2.0 * h as f64);
                     let an = g[j] as f64;
-                    assert!((fd - an).abs() <= 3e-3 + 2e-2 * fd.abs().max(an.abs()), "net {net} param {pi}[{j}]: {an} vs fd {fd}");
+                    assert!(
+                        (fd - an).abs() <= 3e-3 + 2e-2 * fd.abs().max(an.abs()),
+                        "net {net} param {pi}[{j}]: {an} vs fd {fd}"
+                    );
                     checked += usize::from(an != 0.0);
                 }
             }
@@ -539,7 +552,7 @@ mod tests {
         let f = NerfPpNet::new(&tiny(), sphere_space(false), 3);
         let g = NerfPpNet::new(&tiny(), sphere_space(true), 3);
         let positions = vec![[1.5, 0.3, -0.4], [1.0, 6.0, 2.0], [0.2, -0.9, 0.7], [-9.0, 1.0, 3.0], [2.0, 0.5, 0.1]];
-        let dirs = vec![[0.0, 0.6, 0.8], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [-0.6, 0.0, 0.8], [0.0, 0.0, 1.0]];
+        let dirs = [[0.0, 0.6, 0.8], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [-0.6, 0.0, 0.8], [0.0, 0.0, 1.0]];
         let rows: Vec<u32> = vec![4, 1, 3, 0];
         let sub_p: Vec<Vec3> = rows.iter().map(|&r| positions[r as usize]).collect();
         let sub_d: Vec<Vec3> = rows.iter().map(|&r| dirs[r as usize]).collect();

@@ -55,7 +55,8 @@ impl VoxelGridField {
         let grid = Grid::new(res, channels, 0.0);
         let n = grid.data.len();
         let shift = (1.0 / (1.0 - config.alpha_init) - 1.0).ln();
-        let voxel_length = extent.characteristic_length() / (config.resolution.iter().sum::<usize>() as f32 / 3.0 - 1.0);
+        let voxel_length =
+            extent.characteristic_length() / (config.resolution.iter().sum::<usize>() as f32 / 3.0 - 1.0);
         VoxelGridField {
             adam: SparseAdam::new(n, 0.9, 0.99),
             grads: vec![0.0; n],
@@ -179,11 +180,8 @@ impl RadianceField for VoxelGridField {
         // Pass 1, parallel over samples: corners and the gradient of the interpolated channels.
         let mut corners: Vec<Option<Corners>> = vec![None; n];
         let mut g = vec![0.0f32; n * ch];
-        corners
-            .par_chunks_mut(CHUNK)
-            .zip(g.par_chunks_mut(CHUNK * ch))
-            .enumerate()
-            .for_each(|(chunk, (corners, g))| {
+        corners.par_chunks_mut(CHUNK).zip(g.par_chunks_mut(CHUNK * ch)).enumerate().for_each(
+            |(chunk, (corners, g))| {
                 let mut feat = vec![0.0; ch];
                 let mut basis = vec![0.0; n_sh];
                 for (j, c) in corners.iter_mut().enumerate() {
@@ -205,7 +203,8 @@ impl RadianceField for VoxelGridField {
                         }
                     }
                 }
-            });
+            },
+        );
         // Pass 2, parallel over vertex ranges: each task owns a slab of vertices and scatters
         // only the corners that fall in it, so no two tasks write the same gradient.
         let n_vertices = self.grid.n_vertices();
@@ -252,7 +251,6 @@ impl RadianceField for VoxelGridField {
         }
     }
 
-
     fn step(&mut self, lr_factor: f32) {
         let ch = self.grid.channels;
         let mut lr = vec![self.config.lr_color * lr_factor; ch];
@@ -275,8 +273,6 @@ impl RadianceField for VoxelGridField {
         }
         self.touched.clear();
     }
-
-
 
     fn seg_input_dim(&self) -> usize {
         positional_encoding_dim(3, self.config.seg_frequencies) + SEG_EXTRA
@@ -331,8 +327,9 @@ impl RadianceField for VoxelGridField {
         let too_short = || StateError::Truncated { kind: kind() };
         let malformed = |reason: String| StateError::Malformed { kind: kind(), reason };
         let len = u64::from_le_bytes(bytes.get(..8).ok_or_else(too_short)?.try_into().expect("8 bytes")) as usize;
-        let header: serde_json::Value = serde_json::from_slice(bytes.get(8..8usize.saturating_add(len)).ok_or_else(too_short)?)
-            .map_err(|e| malformed(format!("header: {e}")))?;
+        let header: serde_json::Value =
+            serde_json::from_slice(bytes.get(8..8usize.saturating_add(len)).ok_or_else(too_short)?)
+                .map_err(|e| malformed(format!("header: {e}")))?;
         let res: [usize; 3] =
             serde_json::from_value(header["res"].clone()).map_err(|e| malformed(format!("resolution: {e}")))?;
         let channels =
@@ -403,9 +400,7 @@ impl RadianceField for VoxelGridField {
 impl CoarseToFine for VoxelGridField {
     fn begin_step(&mut self, step: usize, total_steps: usize) -> bool {
         let schedule = &self.config.upsample_at;
-        if self.next_growth < schedule.len()
-            && step as f32 >= schedule[self.next_growth] * total_steps as f32
-        {
+        if self.next_growth < schedule.len() && step as f32 >= schedule[self.next_growth] * total_steps as f32 {
             self.next_growth += 1;
             let res = self.scheduled_resolution(self.next_growth);
             self.grow_to(res);

@@ -116,4 +116,3 @@ sos_core::plugin_kind! {
         }
     }
 }
-

@@ -76,8 +76,7 @@ pub(crate) mod fixture {
     }
 
     pub fn load() -> Fixture {
-        serde_json::from_str(include_str!("../../../fixtures/metrics/metrics.json"))
-            .expect("metrics fixture parses")
+        serde_json::from_str(include_str!("../../../fixtures/metrics/metrics.json")).expect("metrics fixture parses")
     }
 
     impl Array {

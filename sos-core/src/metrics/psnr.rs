@@ -46,8 +46,7 @@ pub fn psnr_of_mean_mse(mses: &[f64]) -> Option<f64> {
 /// The offline script's PSNR: the mean of the per-image PSNRs (`None` for no images).
 /// Never below [`psnr_of_mean_mse`] (Jensen); an exactly reproduced image counts 120 dB.
 pub fn mean_psnr(mses: &[f64]) -> Option<f64> {
-    (!mses.is_empty())
-        .then(|| mses.iter().map(|&m| psnr_from_mse(m)).sum::<f64>() / mses.len() as f64)
+    (!mses.is_empty()).then(|| mses.iter().map(|&m| psnr_from_mse(m)).sum::<f64>() / mses.len() as f64)
 }
 
 #[cfg(test)]

@@ -43,27 +43,15 @@ impl SegmentationReport {
 
     /// Adds a view from already computed values.
     pub fn push(&mut self, name: impl Into<String>, ari: f64, iou: BinaryIou) {
-        self.views.push(SegmentationView {
-            name: name.into(),
-            ari,
-            iou_bg: iou.bg,
-            iou_fg: iou.fg,
-            miou: iou.miou(),
-        });
+        self.views.push(SegmentationView { name: name.into(), ari, iou_bg: iou.bg, iou_fg: iou.fg, miou: iou.miou() });
         self.mean_ari = mean_defined(self.views.iter().map(|v| Some(v.ari)));
-        let per_view: Vec<BinaryIou> =
-            self.views.iter().map(|v| BinaryIou { bg: v.iou_bg, fg: v.iou_fg }).collect();
+        let per_view: Vec<BinaryIou> = self.views.iter().map(|v| BinaryIou { bg: v.iou_bg, fg: v.iou_fg }).collect();
         self.iou = Some(mean_iou(&per_view));
     }
 
     /// Computes and adds a view: `gt` and `pred` are per-pixel foreground flags of the same
     /// image (ARI is invariant to swapping the prediction's labels; IoU is not).
-    pub fn add_view(
-        &mut self,
-        name: impl Into<String>,
-        gt: &[bool],
-        pred: &[bool],
-    ) -> Result<(), MetricError> {
+    pub fn add_view(&mut self, name: impl Into<String>, gt: &[bool], pred: &[bool]) -> Result<(), MetricError> {
         let iou = binary_iou(gt, pred)?;
         let ari = adjusted_rand_index(gt, pred)?;
         self.push(name, ari, iou);
@@ -93,13 +81,7 @@ impl SegmentationReport {
             .iter()
             .map(|v| [v.name.clone(), num(Some(v.ari)), num(v.iou_bg), num(v.iou_fg), num(v.miou)])
             .collect();
-        rows.push([
-            "mean".into(),
-            num(self.mean_ari),
-            num(iou.iou_bg),
-            num(iou.iou_fg),
-            num(iou.miou),
-        ]);
+        rows.push(["mean".into(), num(self.mean_ari), num(iou.iou_bg), num(iou.iou_fg), num(iou.miou)]);
         table(&["view", "ARI", "IoU(BG)", "IoU(FG)", "mIoU"], &rows)
     }
 }
@@ -135,12 +117,7 @@ impl ImageQualityReport {
 
     /// Adds a view from already computed values (`mse` over pixels and channels).
     pub fn push(&mut self, name: impl Into<String>, mse: f64, ssim: f64) {
-        self.views.push(ImageQualityView {
-            name: name.into(),
-            mse,
-            psnr: psnr_from_mse(mse),
-            ssim,
-        });
+        self.views.push(ImageQualityView { name: name.into(), mse, psnr: psnr_from_mse(mse), ssim });
         let mses: Vec<f64> = self.views.iter().map(|v| v.mse).collect();
         self.psnr_of_mean_mse = psnr_of_mean_mse(&mses);
         self.mean_psnr = mean_psnr(&mses);
@@ -148,12 +125,7 @@ impl ImageQualityReport {
     }
 
     /// Computes and adds a view from a rendered image and its ground truth.
-    pub fn add_view(
-        &mut self,
-        name: impl Into<String>,
-        rendered: &RgbImage,
-        gt: &RgbImage,
-    ) -> Result<(), MetricError> {
+    pub fn add_view(&mut self, name: impl Into<String>, rendered: &RgbImage, gt: &RgbImage) -> Result<(), MetricError> {
         let s = ssim(rendered, gt)?;
         let m = mse(&rendered.data, &gt.data)?;
         self.push(name, m, s);
@@ -186,18 +158,11 @@ impl ImageQualityReport {
         let mut rows: Vec<[String; 4]> = self
             .views
             .iter()
-            .map(|v| {
-                [v.name.clone(), format!("{:.6}", v.mse), num2(Some(v.psnr)), num(Some(v.ssim))]
-            })
+            .map(|v| [v.name.clone(), format!("{:.6}", v.mse), num2(Some(v.psnr)), num(Some(v.ssim))])
             .collect();
         let mean_mse = mean_defined(self.views.iter().map(|v| Some(v.mse)));
         rows.push(["mean".into(), num(mean_mse), num2(self.mean_psnr), num(self.mean_ssim)]);
-        rows.push([
-            "psnr(mean mse)".into(),
-            String::new(),
-            num2(self.psnr_of_mean_mse),
-            String::new(),
-        ]);
+        rows.push(["psnr(mean mse)".into(), String::new(), num2(self.psnr_of_mean_mse), String::new()]);
         table(&["view", "MSE", "PSNR", "SSIM"], &rows)
     }
 }

@@ -22,11 +22,7 @@ const HALF: usize = SSIM_WINDOW / 2;
 pub fn ssim(a: &RgbImage, b: &RgbImage) -> Result<f64, MetricError> {
     check_sizes(a.data.len(), b.data.len(), a.width * a.height * 3)?;
     if (a.width, a.height) != (b.width, b.height) {
-        return Err(MetricError::SizeMismatch {
-            what: "SSIM: image widths",
-            left: a.width,
-            right: b.width,
-        });
+        return Err(MetricError::SizeMismatch { what: "SSIM: image widths", left: a.width, right: b.width });
     }
     let sum: f64 = (0..3)
         .map(|c| {
@@ -40,13 +36,7 @@ pub fn ssim(a: &RgbImage, b: &RgbImage) -> Result<f64, MetricError> {
 
 /// SSIM of two channel-first images `[channels, height, width]` (the reference's CHW
 /// tensors), same definition as [`ssim`].
-pub fn ssim_planar(
-    a: &[f32],
-    b: &[f32],
-    channels: usize,
-    height: usize,
-    width: usize,
-) -> Result<f64, MetricError> {
+pub fn ssim_planar(a: &[f32], b: &[f32], channels: usize, height: usize, width: usize) -> Result<f64, MetricError> {
     check_sizes(a.len(), b.len(), channels * height * width)?;
     let plane = height * width;
     let sum: f64 = (0..channels)
@@ -223,10 +213,8 @@ mod tests {
         let planar = ssim_planar(&a, &b, 3, h, w).unwrap();
         let rgb = ssim(&to_rgb(&a), &to_rgb(&b)).unwrap();
         assert!((planar - rgb).abs() < 1e-12);
-        let direct: f64 = (0..3)
-            .map(|c| ssim_direct(&a[c * h * w..][..h * w], &b[c * h * w..][..h * w], h, w))
-            .sum::<f64>()
-            / 3.0;
+        let direct: f64 =
+            (0..3).map(|c| ssim_direct(&a[c * h * w..][..h * w], &b[c * h * w..][..h * w], h, w)).sum::<f64>() / 3.0;
         assert!((planar - direct).abs() < 1e-12, "{planar} vs {direct}");
     }
 

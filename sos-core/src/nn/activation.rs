@@ -89,12 +89,7 @@ fn forward_rows<F: Fn(f32) -> f32 + Sync>(y: &mut [f32], bias: &[f32], f: F) {
 }
 
 /// `grad *= df(out)` element-wise, and (when `col_sum` is non-empty) `col_sum += Σ_rows grad`.
-fn backward_rows<D: Fn(f32) -> f32 + Sync>(
-    out: &[f32],
-    grad: &mut [f32],
-    col_sum: &mut [f32],
-    df: D,
-) {
+fn backward_rows<D: Fn(f32) -> f32 + Sync>(out: &[f32], grad: &mut [f32], col_sum: &mut [f32], df: D) {
     let cols = col_sum.len();
     let body = |o: &[f32], g: &mut [f32], acc: &mut [f32]| {
         if cols == 0 {
@@ -206,10 +201,7 @@ impl Activation {
     /// # Shapes
     /// `y`: `[rows, bias.len()]`.
     pub fn forward_bias(self, y: &mut [f32], bias: &[f32]) {
-        assert!(
-            bias.is_empty() || y.chunks_exact(bias.len()).remainder().is_empty(),
-            "forward_bias: ragged rows"
-        );
+        assert!(bias.is_empty() || y.chunks_exact(bias.len()).remainder().is_empty(), "forward_bias: ragged rows");
         match self {
             Activation::Identity if bias.is_empty() => {}
             Activation::Identity => forward_rows(y, bias, |v| v),
@@ -226,11 +218,7 @@ impl Activation {
     /// # Shapes
     /// `out`, `grad`: `[rows, bias_grad.len()]`.
     pub fn backward_bias(self, out: &[f32], grad: &mut [f32], bias_grad: &mut [f32]) {
-        assert_eq!(
-            out.len(),
-            grad.len(),
-            "backward: output and gradient lengths differ"
-        );
+        assert_eq!(out.len(), grad.len(), "backward: output and gradient lengths differ");
         assert!(
             bias_grad.is_empty() || grad.chunks_exact(bias_grad.len()).remainder().is_empty(),
             "backward_bias: ragged rows"
@@ -238,9 +226,7 @@ impl Activation {
         match self {
             Activation::Identity if bias_grad.is_empty() => {}
             Activation::Identity => add_column_sums(grad, bias_grad),
-            Activation::Relu => {
-                backward_rows(out, grad, bias_grad, |y| if y > 0.0 { 1.0 } else { 0.0 })
-            }
+            Activation::Relu => backward_rows(out, grad, bias_grad, |y| if y > 0.0 { 1.0 } else { 0.0 }),
             Activation::Sigmoid => backward_rows(out, grad, bias_grad, |y| y * (1.0 - y)),
             Activation::Softplus => backward_rows(out, grad, bias_grad, |y| -(-y).exp_m1()),
         }
@@ -286,10 +272,7 @@ mod tests {
     fn backward_matches_finite_differences() {
         let mut rng = ChaCha8Rng::seed_from_u64(7);
         // Keep away from ReLU's kink so the difference quotient is valid; cover softplus' tails.
-        let mut xs: Vec<f32> = (0..200)
-            .map(|_| rng.gen_range(-6.0f32..6.0))
-            .filter(|x| x.abs() > 0.05)
-            .collect();
+        let mut xs: Vec<f32> = (0..200).map(|_| rng.gen_range(-6.0f32..6.0)).filter(|x| x.abs() > 0.05).collect();
         xs.extend([-30.0, -15.0, 25.0, 0.3, -0.3]);
         for act in ALL {
             let mut y = xs.clone();
@@ -336,20 +319,14 @@ mod tests {
                     for j in 0..cols {
                         let i = r * cols + j;
                         let want_y = act.apply(x[i] + b[j]);
-                        assert!(
-                            (y[i] - want_y).abs() <= 1e-6 * (1.0 + want_y.abs()),
-                            "{act:?} forward"
-                        );
+                        assert!((y[i] - want_y).abs() <= 1e-6 * (1.0 + want_y.abs()), "{act:?} forward");
                         let want_g = dy[i] * act.derivative_from_output(want_y);
                         assert!((g[i] - want_g).abs() <= 1e-6, "{act:?} backward");
                         db_ref[j] += want_g as f64;
                     }
                 }
                 for j in 0..cols {
-                    assert!(
-                        (db[j] as f64 - db_ref[j]).abs() <= 1e-3,
-                        "{act:?} bias grad {j}"
-                    );
+                    assert!((db[j] as f64 - db_ref[j]).abs() <= 1e-3, "{act:?} bias grad {j}");
                 }
             }
         }
@@ -357,10 +334,7 @@ mod tests {
 
     #[test]
     fn serde_names_are_kebab_case() {
-        assert_eq!(
-            serde_json::to_string(&Activation::Softplus).unwrap(),
-            "\"softplus\""
-        );
+        assert_eq!(serde_json::to_string(&Activation::Softplus).unwrap(), "\"softplus\"");
         let a: Activation = serde_json::from_str("\"relu\"").unwrap();
         assert_eq!(a, Activation::Relu);
     }

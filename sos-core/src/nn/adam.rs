@@ -42,15 +42,7 @@ impl Adam {
 
     /// Adam with explicit hyper-parameters.
     pub fn with_hyper(lr: f32, beta1: f32, beta2: f32, eps: f32) -> Self {
-        Self {
-            lr,
-            beta1,
-            beta2,
-            eps,
-            t: 0,
-            m: Vec::new(),
-            v: Vec::new(),
-        }
+        Self { lr, beta1, beta2, eps, t: 0, m: Vec::new(), v: Vec::new() }
     }
 
     /// One update of every parameter from its accumulated gradient, with learning rate
@@ -63,11 +55,7 @@ impl Adam {
             self.m = params.iter().map(|p| vec![0.0; p.len()]).collect();
             self.v = self.m.clone();
         }
-        assert_eq!(
-            self.m.len(),
-            params.len(),
-            "Adam: parameter list changed between steps"
-        );
+        assert_eq!(self.m.len(), params.len(), "Adam: parameter list changed between steps");
         self.t += 1;
         let t = self.t.min(i32::MAX as u64) as i32;
         // Bias corrections in f64: β₂ᵗ is close to 1 for many steps.
@@ -77,12 +65,7 @@ impl Adam {
         let inv_sqrt_bc2 = (1.0 / bc2.sqrt()) as f32;
         let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
         let update = move |p: &mut [f32], g: &mut [f32], m: &mut [f32], v: &mut [f32]| {
-            for (((p, g), m), v) in p
-                .iter_mut()
-                .zip(g.iter_mut())
-                .zip(m.iter_mut())
-                .zip(v.iter_mut())
-            {
+            for (((p, g), m), v) in p.iter_mut().zip(g.iter_mut()).zip(m.iter_mut()).zip(v.iter_mut()) {
                 *m = b1 * *m + (1.0 - b1) * *g;
                 *v = b2 * *v + (1.0 - b2) * *g * *g;
                 *p -= step_size * *m / (v.sqrt() * inv_sqrt_bc2 + eps);
@@ -119,37 +102,19 @@ mod tests {
     /// Minimises `Σ cᵢ(pᵢ − tᵢ)²` (badly scaled on purpose) over a small and a rayon-sized param.
     #[test]
     fn converges_on_a_quadratic() {
-        let target: Vec<f32> = (0..40_000)
-            .map(|i| ((i % 17) as f32 - 8.0) * 0.25)
-            .collect();
-        let scale: Vec<f32> = (0..40_000)
-            .map(|i| if i % 2 == 0 { 0.1 } else { 10.0 })
-            .collect();
+        let target: Vec<f32> = (0..40_000).map(|i| ((i % 17) as f32 - 8.0) * 0.25).collect();
+        let scale: Vec<f32> = (0..40_000).map(|i| if i % 2 == 0 { 0.1 } else { 10.0 }).collect();
         let mut big = Param::new(vec![0.0; 40_000]);
         let mut small = Param::new(vec![5.0, -5.0, 0.5]);
         let mut adam = Adam::new(0.05);
         let loss = |big: &Param, small: &Param| -> f64 {
-            let a: f64 = big
-                .value
-                .iter()
-                .zip(&target)
-                .zip(&scale)
-                .map(|((p, t), c)| (c * (p - t) * (p - t)) as f64)
-                .sum();
-            a + small
-                .value
-                .iter()
-                .map(|p| (p - 1.0) as f64 * (p - 1.0) as f64)
-                .sum::<f64>()
+            let a: f64 =
+                big.value.iter().zip(&target).zip(&scale).map(|((p, t), c)| (c * (p - t) * (p - t)) as f64).sum();
+            a + small.value.iter().map(|p| (p - 1.0) as f64 * (p - 1.0) as f64).sum::<f64>()
         };
         let start = loss(&big, &small);
         for step in 0..3000 {
-            for ((g, p), (t, c)) in big
-                .grad
-                .iter_mut()
-                .zip(&big.value)
-                .zip(target.iter().zip(&scale))
-            {
+            for ((g, p), (t, c)) in big.grad.iter_mut().zip(&big.value).zip(target.iter().zip(&scale)) {
                 *g += 2.0 * c * (p - t);
             }
             for (g, p) in small.grad.iter_mut().zip(&small.value) {
@@ -158,18 +123,11 @@ mod tests {
             // A decaying schedule through lr_factor, to settle at the minimum.
             let factor = if step < 1500 { 1.0 } else { 0.1 };
             adam.step(&mut [&mut big, &mut small], factor);
-            assert!(
-                big.grad.iter().chain(&small.grad).all(|&g| g == 0.0),
-                "step must zero grads"
-            );
+            assert!(big.grad.iter().chain(&small.grad).all(|&g| g == 0.0), "step must zero grads");
         }
         let end = loss(&big, &small);
         assert!(end < 1e-6 * start, "loss {start} -> {end}");
-        assert!(
-            small.value.iter().all(|p| (p - 1.0).abs() < 1e-3),
-            "{:?}",
-            small.value
-        );
+        assert!(small.value.iter().all(|p| (p - 1.0).abs() < 1e-3), "{:?}", small.value);
         assert_eq!(adam.t, 3000);
     }
 
@@ -180,11 +138,7 @@ mod tests {
         p.grad = vec![1e-3, -50.0];
         let mut adam = Adam::new(0.1);
         adam.step(&mut [&mut p], 1.0);
-        assert!(
-            (p.value[0] + 0.1).abs() < 1e-4 && (p.value[1] - 0.1).abs() < 1e-4,
-            "{:?}",
-            p.value
-        );
+        assert!((p.value[0] + 0.1).abs() < 1e-4 && (p.value[1] - 0.1).abs() < 1e-4, "{:?}", p.value);
     }
 
     #[test]

@@ -28,21 +28,12 @@ pub struct Linear {
 impl Linear {
     /// PyTorch's default initialisation: `W` and `b` drawn from `U(−1/√in_dim, 1/√in_dim)`.
     pub fn new(in_dim: usize, out_dim: usize, rng: &mut impl Rng) -> Self {
-        assert!(
-            in_dim > 0 && out_dim > 0,
-            "Linear::new: dimensions must be positive"
-        );
+        assert!(in_dim > 0 && out_dim > 0, "Linear::new: dimensions must be positive");
         let bound = 1.0 / (in_dim as f32).sqrt();
-        let mut draw =
-            |len: usize| -> Vec<f32> { (0..len).map(|_| rng.gen_range(-bound..=bound)).collect() };
+        let mut draw = |len: usize| -> Vec<f32> { (0..len).map(|_| rng.gen_range(-bound..=bound)).collect() };
         let weight = Param::new(draw(in_dim * out_dim));
         let bias = Param::new(draw(out_dim));
-        Self {
-            in_dim,
-            out_dim,
-            weight,
-            bias,
-        }
+        Self { in_dim, out_dim, weight, bias }
     }
 
     /// Number of trainable scalars (`in_dim·out_dim + out_dim`).
@@ -109,16 +100,8 @@ impl Linear {
         accumulate_dx: bool,
     ) {
         self.check_blocks(blocks);
-        assert_eq!(
-            dxs.len(),
-            blocks.len(),
-            "backward: one dx slot per input block"
-        );
-        assert_eq!(
-            (g.rows, g.cols),
-            (blocks[0].rows, self.out_dim),
-            "backward: dy shape"
-        );
+        assert_eq!(dxs.len(), blocks.len(), "backward: one dx slot per input block");
+        assert_eq!((g.rows, g.cols), (blocks[0].rows, self.out_dim), "backward: dy shape");
         let mut row = 0;
         for (x, dx) in blocks.iter().zip(dxs.iter_mut()) {
             let range = row * self.out_dim..(row + x.cols) * self.out_dim;
@@ -135,18 +118,9 @@ impl Linear {
 
     fn check_blocks(&self, blocks: &[MatRef<'_>]) {
         assert!(!blocks.is_empty(), "Linear: no input");
-        assert!(
-            blocks
-                .iter()
-                .all(|b| !b.transposed && b.rows == blocks[0].rows),
-            "Linear: block rows differ"
-        );
+        assert!(blocks.iter().all(|b| !b.transposed && b.rows == blocks[0].rows), "Linear: block rows differ");
         let width: usize = blocks.iter().map(|b| b.cols).sum();
-        assert_eq!(
-            width, self.in_dim,
-            "Linear: input has {width} features, layer expects {}",
-            self.in_dim
-        );
+        assert_eq!(width, self.in_dim, "Linear: input has {width} features, layer expects {}", self.in_dim);
     }
 }
 
@@ -158,12 +132,7 @@ pub(crate) mod tests {
 
     /// Checks an analytic gradient against central differences of `loss` (f32 evaluation,
     /// f64 accumulation) for every coordinate of `x`.
-    pub(crate) fn check_grad(
-        what: &str,
-        x: &mut [f32],
-        analytic: &[f32],
-        mut loss: impl FnMut(&[f32]) -> f64,
-    ) {
+    pub(crate) fn check_grad(what: &str, x: &mut [f32], analytic: &[f32], mut loss: impl FnMut(&[f32]) -> f64) {
         assert_eq!(x.len(), analytic.len());
         let h = 1e-2f32;
         for i in 0..x.len() {
@@ -191,16 +160,8 @@ pub(crate) mod tests {
     fn init_is_within_pytorch_bounds() {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let l = Linear::new(16, 8, &mut rng);
-        assert!(l
-            .weight
-            .value
-            .iter()
-            .chain(&l.bias.value)
-            .all(|v| v.abs() <= 0.25));
-        assert!(
-            l.weight.value.iter().any(|v| v.abs() > 0.2),
-            "should span the range"
-        );
+        assert!(l.weight.value.iter().chain(&l.bias.value).all(|v| v.abs() <= 0.25));
+        assert!(l.weight.value.iter().any(|v| v.abs() > 0.2), "should span the range");
         assert_eq!((l.weight.grad.len(), l.bias.grad.len()), (128, 8));
     }
 
@@ -214,10 +175,7 @@ pub(crate) mod tests {
         l.forward(&x, n, &mut y);
         for r in 0..n {
             for c in 0..o {
-                let want = l.bias.value[c]
-                    + (0..i)
-                        .map(|k| x[r * i + k] * l.weight.value[k * o + c])
-                        .sum::<f32>();
+                let want = l.bias.value[c] + (0..i).map(|k| x[r * i + k] * l.weight.value[k * o + c]).sum::<f32>();
                 assert!((y[r * o + c] - want).abs() < 1e-5);
             }
         }

@@ -30,26 +30,13 @@ impl<'a> MatRef<'a> {
     /// # Panics
     /// If `data.len() != rows * cols`.
     pub fn new(data: &'a [f32], rows: usize, cols: usize) -> Self {
-        assert_eq!(
-            data.len(),
-            rows * cols,
-            "MatRef: {} values for a {rows}×{cols} matrix",
-            data.len()
-        );
-        Self {
-            data,
-            rows,
-            cols,
-            transposed: false,
-        }
+        assert_eq!(data.len(), rows * cols, "MatRef: {} values for a {rows}×{cols} matrix", data.len());
+        Self { data, rows, cols, transposed: false }
     }
 
     /// The transpose of this operand (toggles; no data is moved).
     pub fn t(self) -> Self {
-        Self {
-            transposed: !self.transposed,
-            ..self
-        }
+        Self { transposed: !self.transposed, ..self }
     }
 
     /// Logical row count (after the optional transpose).
@@ -94,18 +81,8 @@ impl<'a> MatRef<'a> {
 /// If the inner dimensions disagree or `c.len() != m * n`.
 pub fn matmul(a: MatRef<'_>, b: MatRef<'_>, c: &mut [f32], accumulate: bool) {
     let (m, k, n) = (a.op_rows(), a.op_cols(), b.op_cols());
-    assert_eq!(
-        b.op_rows(),
-        k,
-        "matmul: inner dimensions differ ({m}×{k} · {}×{n})",
-        b.op_rows()
-    );
-    assert_eq!(
-        c.len(),
-        m * n,
-        "matmul: destination has {} values, expected {m}×{n}",
-        c.len()
-    );
+    assert_eq!(b.op_rows(), k, "matmul: inner dimensions differ ({m}×{k} · {}×{n})", b.op_rows());
+    assert_eq!(c.len(), m * n, "matmul: destination has {} values, expected {m}×{n}", c.len());
     if m == 0 || n == 0 {
         return;
     }
@@ -124,18 +101,7 @@ pub fn matmul(a: MatRef<'_>, b: MatRef<'_>, c: &mut [f32], accumulate: bool) {
     };
     let (a_cs, a_rs) = a.strides();
     let (b_cs, b_rs) = b.strides();
-    raw_gemm(
-        m,
-        n,
-        k,
-        c,
-        a.data,
-        (a_cs, a_rs),
-        b.data,
-        (b_cs, b_rs),
-        accumulate,
-        parallelism,
-    );
+    raw_gemm(m, n, k, c, a.data, (a_cs, a_rs), b.data, (b_cs, b_rs), accumulate, parallelism);
 }
 
 /// The single `unsafe` call into `gemm`. Every pointer/stride combination is re-checked here so
@@ -155,24 +121,12 @@ fn raw_gemm(
 ) {
     // Largest element offset reached by a matrix with the given shape and non-negative strides.
     fn last_index(rows: usize, cols: usize, cs: isize, rs: isize) -> usize {
-        assert!(
-            cs >= 0 && rs >= 0,
-            "raw_gemm: negative strides are not supported"
-        );
+        assert!(cs >= 0 && rs >= 0, "raw_gemm: negative strides are not supported");
         (rows - 1) * rs as usize + (cols - 1) * cs as usize
     }
-    assert!(
-        m > 0 && n > 0 && k > 0,
-        "raw_gemm: empty products are handled by the caller"
-    );
-    assert!(
-        last_index(m, k, lhs_cs, lhs_rs) < lhs.len(),
-        "raw_gemm: lhs out of bounds"
-    );
-    assert!(
-        last_index(k, n, rhs_cs, rhs_rs) < rhs.len(),
-        "raw_gemm: rhs out of bounds"
-    );
+    assert!(m > 0 && n > 0 && k > 0, "raw_gemm: empty products are handled by the caller");
+    assert!(last_index(m, k, lhs_cs, lhs_rs) < lhs.len(), "raw_gemm: lhs out of bounds");
+    assert!(last_index(k, n, rhs_cs, rhs_rs) < rhs.len(), "raw_gemm: rhs out of bounds");
     // dst is written densely row-major, so every element is distinct (no aliasing writes).
     assert!(dst.len() >= m * n, "raw_gemm: dst out of bounds");
     let (dst_cs, dst_rs) = (1isize, n as isize);
@@ -227,37 +181,21 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         // Includes sizes that do not divide the 16-lane SIMD width, non-square shapes and one
         // product large enough to take the parallel path.
-        let sizes = [
-            (1, 1, 1),
-            (3, 5, 7),
-            (17, 33, 9),
-            (16, 1, 31),
-            (64, 63, 65),
-            (130, 70, 100),
-        ];
+        let sizes = [(1, 1, 1), (3, 5, 7), (17, 33, 9), (16, 1, 31), (64, 63, 65), (130, 70, 100)];
         for &(m, k, n) in &sizes {
             for ta in [false, true] {
                 for tb in [false, true] {
                     for accumulate in [false, true] {
                         let a_data = random(m * k, &mut rng);
                         let b_data = random(k * n, &mut rng);
-                        let a = if ta {
-                            MatRef::new(&a_data, k, m).t()
-                        } else {
-                            MatRef::new(&a_data, m, k)
-                        };
-                        let b = if tb {
-                            MatRef::new(&b_data, n, k).t()
-                        } else {
-                            MatRef::new(&b_data, k, n)
-                        };
+                        let a = if ta { MatRef::new(&a_data, k, m).t() } else { MatRef::new(&a_data, m, k) };
+                        let b = if tb { MatRef::new(&b_data, n, k).t() } else { MatRef::new(&b_data, k, n) };
                         let c0 = random(m * n, &mut rng);
                         let mut c = c0.clone();
                         matmul(a, b, &mut c, accumulate);
                         for i in 0..m {
                             for j in 0..n {
-                                let mut want: f64 =
-                                    (0..k).map(|p| at(&a, i, p) * at(&b, p, j)).sum();
+                                let mut want: f64 = (0..k).map(|p| at(&a, i, p) * at(&b, p, j)).sum();
                                 if accumulate {
                                     want += c0[i * n + j] as f64;
                                 }
@@ -277,12 +215,7 @@ mod tests {
     #[test]
     fn empty_inner_dimension_gives_zero() {
         let mut c = vec![5.0; 6];
-        matmul(
-            MatRef::new(&[], 2, 0),
-            MatRef::new(&[], 0, 3),
-            &mut c,
-            false,
-        );
+        matmul(MatRef::new(&[], 2, 0), MatRef::new(&[], 0, 3), &mut c, false);
         assert_eq!(c, vec![0.0; 6]);
     }
 
@@ -290,11 +223,6 @@ mod tests {
     #[should_panic(expected = "inner dimensions")]
     fn rejects_mismatched_shapes() {
         let mut c = vec![0.0; 4];
-        matmul(
-            MatRef::new(&[0.0; 6], 2, 3),
-            MatRef::new(&[0.0; 4], 2, 2),
-            &mut c,
-            false,
-        );
+        matmul(MatRef::new(&[0.0; 6], 2, 3), MatRef::new(&[0.0; 4], 2, 2), &mut c, false);
     }
 }

@@ -69,16 +69,10 @@ impl Mlp {
         output: Activation,
         rng: &mut impl Rng,
     ) -> Self {
-        assert!(
-            dims.len() >= 2,
-            "Mlp: need at least input and output widths"
-        );
+        assert!(dims.len() >= 2, "Mlp: need at least input and output widths");
         let num_layers = dims.len() - 1;
         if let Some(s) = skip_at {
-            assert!(
-                (1..num_layers).contains(&s),
-                "Mlp: skip_at {s} must be in 1..{num_layers}"
-            );
+            assert!((1..num_layers).contains(&s), "Mlp: skip_at {s} must be in 1..{num_layers}");
         }
         let layers = (0..num_layers)
             .map(|i| {
@@ -86,12 +80,7 @@ impl Mlp {
                 Linear::new(dims[i] + extra, dims[i + 1], rng)
             })
             .collect();
-        Self {
-            layers,
-            hidden,
-            output,
-            skip_at,
-        }
+        Self { layers, hidden, output, skip_at }
     }
 
     /// Input width.
@@ -111,10 +100,7 @@ impl Mlp {
 
     /// All parameters in a fixed order (per layer: weight, bias), e.g. for [`super::Adam`].
     pub fn params_mut(&mut self) -> Vec<&mut Param> {
-        self.layers
-            .iter_mut()
-            .flat_map(|l| [&mut l.weight, &mut l.bias])
-            .collect()
+        self.layers.iter_mut().flat_map(|l| [&mut l.weight, &mut l.bias]).collect()
     }
 
     /// Zeros every gradient.
@@ -137,10 +123,7 @@ impl Mlp {
         if l == 0 {
             vec![MatRef::new(x, n, in0)]
         } else if self.skip_at == Some(l) {
-            vec![
-                MatRef::new(x, n, in0),
-                MatRef::new(prev, n, self.layers[l].in_dim - in0),
-            ]
+            vec![MatRef::new(x, n, in0), MatRef::new(prev, n, self.layers[l].in_dim - in0)]
         } else {
             vec![MatRef::new(prev, n, self.layers[l].in_dim)]
         }
@@ -172,11 +155,7 @@ impl Mlp {
     }
 
     fn record(&self, x: &[f32], n: usize, tape: &mut MlpTape, copy_input: bool) -> Vec<f32> {
-        assert_eq!(
-            x.len(),
-            n * self.in_dim(),
-            "Mlp::forward: input is not [n, in_dim]"
-        );
+        assert_eq!(x.len(), n * self.in_dim(), "Mlp::forward: input is not [n, in_dim]");
         let num_layers = self.layers.len();
         tape.n = n;
         tape.input.clear();
@@ -219,19 +198,12 @@ impl Mlp {
         let (in_dim, out_dim) = (self.in_dim(), self.out_dim());
         assert_eq!(x.len(), n * in_dim, "Mlp::infer: input is not [n, in_dim]");
         let num_layers = self.layers.len();
-        let max_hidden = self.layers[..num_layers - 1]
-            .iter()
-            .map(|l| l.out_dim)
-            .max()
-            .unwrap_or(0);
+        let max_hidden = self.layers[..num_layers - 1].iter().map(|l| l.out_dim).max().unwrap_or(0);
         let rows = n.min(INFER_CHUNK);
         let mut a = vec![0.0f32; rows * max_hidden];
         let mut b = vec![0.0f32; rows * max_hidden];
         let mut out = vec![0.0f32; n * out_dim];
-        for (xc, oc) in x
-            .chunks(INFER_CHUNK * in_dim)
-            .zip(out.chunks_mut(INFER_CHUNK * out_dim))
-        {
+        for (xc, oc) in x.chunks(INFER_CHUNK * in_dim).zip(out.chunks_mut(INFER_CHUNK * out_dim)) {
             let m = xc.len() / in_dim;
             let mut prev_len = 0;
             for (l, layer) in self.layers.iter().enumerate() {
@@ -260,41 +232,27 @@ impl Mlp {
 
     /// [`Mlp::backward`] for a tape recorded by [`Mlp::forward_into_without_input`], with the
     /// same input it was given.
-    pub fn backward_with_input(&mut self, tape: &MlpTape, input: &[f32], dy: &[f32], want_dx: bool) -> Option<Vec<f32>> {
+    pub fn backward_with_input(
+        &mut self,
+        tape: &MlpTape,
+        input: &[f32],
+        dy: &[f32],
+        want_dx: bool,
+    ) -> Option<Vec<f32>> {
         let n = tape.n;
         let (in_dim, out_dim) = (self.in_dim(), self.out_dim());
         let num_layers = self.layers.len();
-        assert_eq!(
-            dy.len(),
-            n * out_dim,
-            "Mlp::backward: dy is not [n, out_dim]"
-        );
-        assert_eq!(
-            input.len(),
-            n * in_dim,
-            "Mlp::backward: input (or tape) from another network or batch"
-        );
-        assert_eq!(
-            tape.hidden.len(),
-            num_layers - 1,
-            "Mlp::backward: tape from another network"
-        );
+        assert_eq!(dy.len(), n * out_dim, "Mlp::backward: dy is not [n, out_dim]");
+        assert_eq!(input.len(), n * in_dim, "Mlp::backward: input (or tape) from another network or batch");
+        assert_eq!(tape.hidden.len(), num_layers - 1, "Mlp::backward: tape from another network");
         for (h, l) in tape.hidden.iter().zip(&self.layers) {
-            assert_eq!(
-                h.len(),
-                n * l.out_dim,
-                "Mlp::backward: tape from another network"
-            );
+            assert_eq!(h.len(), n * l.out_dim, "Mlp::backward: tape from another network");
         }
         let (hidden_act, skip_at) = (self.hidden, self.skip_at);
         let mut dx_input = want_dx.then(|| vec![0.0f32; n * in_dim]);
 
         // Two ping-pong buffers for ∂L/∂(pre-activation), sized for the widest hidden layer.
-        let max_hidden = self.layers[..num_layers - 1]
-            .iter()
-            .map(|l| l.out_dim)
-            .max()
-            .unwrap_or(0);
+        let max_hidden = self.layers[..num_layers - 1].iter().map(|l| l.out_dim).max().unwrap_or(0);
         let mut cur = vec![0.0f32; n * max_hidden.max(out_dim)];
         let mut nxt = vec![0.0f32; n * max_hidden];
 
@@ -306,17 +264,12 @@ impl Mlp {
         } else {
             let g = &mut cur[..n * out_dim];
             g.copy_from_slice(dy);
-            self.output
-                .backward_bias(&tape.output, g, &mut self.layers[last].bias.grad);
+            self.output.backward_bias(&tape.output, g, &mut self.layers[last].bias.grad);
         }
 
         for l in (0..num_layers).rev() {
             let width = self.layers[l].out_dim;
-            let g_data: &[f32] = if l == last && out_is_identity {
-                dy
-            } else {
-                &cur[..n * width]
-            };
+            let g_data: &[f32] = if l == last && out_is_identity { dy } else { &cur[..n * width] };
             let g = MatRef::new(g_data, n, width);
             let prev: &[f32] = if l == 0 { &[] } else { &tape.hidden[l - 1] };
             let blocks = self.blocks(l, input, prev, n);
@@ -324,19 +277,9 @@ impl Mlp {
             let layer = &mut self.layers[l];
             if l == 0 {
                 // With a skip, the skip layer already wrote its share of ∂L/∂input.
-                layer.backward_blocks(
-                    &blocks,
-                    g,
-                    &mut [dx_input.as_deref_mut()],
-                    skip_at.is_some(),
-                );
+                layer.backward_blocks(&blocks, g, &mut [dx_input.as_deref_mut()], skip_at.is_some());
             } else if skip_at == Some(l) {
-                layer.backward_blocks(
-                    &blocks,
-                    g,
-                    &mut [dx_input.as_deref_mut(), Some(dprev)],
-                    false,
-                );
+                layer.backward_blocks(&blocks, g, &mut [dx_input.as_deref_mut(), Some(dprev)], false);
             } else {
                 layer.backward_blocks(&blocks, g, &mut [Some(dprev)], false);
             }
@@ -389,64 +332,35 @@ mod tests {
     #[test]
     fn backward_matches_finite_differences() {
         let configs = [
-            (
-                vec![3, 5, 4, 2],
-                Some(2),
-                Activation::Sigmoid,
-                Activation::Softplus,
-            ),
-            (
-                vec![4, 6, 5, 3],
-                Some(1),
-                Activation::Softplus,
-                Activation::Identity,
-            ),
-            (
-                vec![2, 4, 3],
-                None,
-                Activation::Sigmoid,
-                Activation::Sigmoid,
-            ),
+            (vec![3, 5, 4, 2], Some(2), Activation::Sigmoid, Activation::Softplus),
+            (vec![4, 6, 5, 3], Some(1), Activation::Softplus, Activation::Identity),
+            (vec![2, 4, 3], None, Activation::Sigmoid, Activation::Sigmoid),
         ];
         for (ci, (dims, skip, hidden, output)) in configs.into_iter().enumerate() {
             let mut rng = ChaCha8Rng::seed_from_u64(10 + ci as u64);
             let mut mlp = Mlp::with_skip(&dims, skip, hidden, output, &mut rng);
             let n = 4;
             let x: Vec<f32> = (0..n * dims[0]).map(|_| rng.gen_range(-1.0..1.0)).collect();
-            let r: Vec<f32> = (0..n * mlp.out_dim())
-                .map(|_| rng.gen_range(-1.0..1.0))
-                .collect();
+            let r: Vec<f32> = (0..n * mlp.out_dim()).map(|_| rng.gen_range(-1.0..1.0)).collect();
             let (_, tape) = mlp.forward(&x, n);
             let dx = mlp.backward(&tape, &r, true).expect("asked for dx");
             let base = mlp.clone();
             let eval = |m: &Mlp, x: &[f32]| dot(&m.forward(x, n).0, &r);
 
-            check_grad(&format!("config {ci} dx"), &mut x.clone(), &dx, |xp| {
-                eval(&base, xp)
-            });
+            check_grad(&format!("config {ci} dx"), &mut x.clone(), &dx, |xp| eval(&base, xp));
             for l in 0..base.layers.len() {
                 let mut w = base.layers[l].weight.value.clone();
-                check_grad(
-                    &format!("config {ci} layer {l} dW"),
-                    &mut w,
-                    &base.layers[l].weight.grad,
-                    |wp| {
-                        let mut m = base.clone();
-                        m.layers[l].weight.value.copy_from_slice(wp);
-                        eval(&m, &x)
-                    },
-                );
+                check_grad(&format!("config {ci} layer {l} dW"), &mut w, &base.layers[l].weight.grad, |wp| {
+                    let mut m = base.clone();
+                    m.layers[l].weight.value.copy_from_slice(wp);
+                    eval(&m, &x)
+                });
                 let mut b = base.layers[l].bias.value.clone();
-                check_grad(
-                    &format!("config {ci} layer {l} db"),
-                    &mut b,
-                    &base.layers[l].bias.grad,
-                    |bp| {
-                        let mut m = base.clone();
-                        m.layers[l].bias.value.copy_from_slice(bp);
-                        eval(&m, &x)
-                    },
-                );
+                check_grad(&format!("config {ci} layer {l} db"), &mut b, &base.layers[l].bias.grad, |bp| {
+                    let mut m = base.clone();
+                    m.layers[l].bias.value.copy_from_slice(bp);
+                    eval(&m, &x)
+                });
             }
         }
     }
@@ -454,32 +368,16 @@ mod tests {
     #[test]
     fn skip_layer_sees_input_first() {
         let mut rng = ChaCha8Rng::seed_from_u64(2);
-        let mlp = Mlp::with_skip(
-            &[3, 8, 8, 8, 1],
-            Some(2),
-            Activation::Relu,
-            Activation::Identity,
-            &mut rng,
-        );
-        assert_eq!(
-            mlp.layers.iter().map(|l| l.in_dim).collect::<Vec<_>>(),
-            vec![3, 8, 11, 8]
-        );
+        let mlp = Mlp::with_skip(&[3, 8, 8, 8, 1], Some(2), Activation::Relu, Activation::Identity, &mut rng);
+        assert_eq!(mlp.layers.iter().map(|l| l.in_dim).collect::<Vec<_>>(), vec![3, 8, 11, 8]);
         assert_eq!(mlp.in_dim(), 3);
         // Zeroing the rows of the skip layer's weight that read h (rows 3..) must leave an
         // output that depends on x only through those first 3 rows.
         let mut m = mlp.clone();
-        m.layers[2].weight.value[3 * 8..]
-            .iter_mut()
-            .for_each(|w| *w = 0.0);
+        m.layers[2].weight.value[3 * 8..].iter_mut().for_each(|w| *w = 0.0);
         let x = vec![0.5, -1.0, 2.0];
         let mut manual = vec![0.0; 8];
-        m.layers[2].forward_act(
-            &[x.clone(), vec![0.0; 8]].concat(),
-            1,
-            &mut manual,
-            Activation::Relu,
-        );
+        m.layers[2].forward_act(&[x.clone(), vec![0.0; 8]].concat(), 1, &mut manual, Activation::Relu);
         let mut want = vec![0.0; 1];
         m.layers[3].forward(&manual, 1, &mut want);
         let got = m.infer(&x, 1);
@@ -489,13 +387,7 @@ mod tests {
     #[test]
     fn infer_matches_forward_across_chunks() {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
-        let mlp = Mlp::with_skip(
-            &[5, 16, 16, 3],
-            Some(2),
-            Activation::Relu,
-            Activation::Sigmoid,
-            &mut rng,
-        );
+        let mlp = Mlp::with_skip(&[5, 16, 16, 3], Some(2), Activation::Relu, Activation::Sigmoid, &mut rng);
         let n = INFER_CHUNK + 77;
         let x: Vec<f32> = (0..n * 5).map(|_| rng.gen_range(-1.0..1.0)).collect();
         let (y, tape) = mlp.forward(&x, n);
@@ -522,38 +414,23 @@ mod tests {
         }
         assert!(once.iter().any(|&g| g != 0.0));
         mlp.zero_grad();
-        assert!(mlp
-            .params_mut()
-            .iter()
-            .all(|p| p.grad.iter().all(|&g| g == 0.0)));
+        assert!(mlp.params_mut().iter().all(|p| p.grad.iter().all(|&g| g == 0.0)));
         assert_eq!(mlp.num_parameters(), 3 * 4 + 4 + 4 * 2 + 2);
     }
 
     #[test]
     fn serde_round_trip() {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
-        let mut mlp = Mlp::with_skip(
-            &[4, 8, 8, 2],
-            Some(2),
-            Activation::Softplus,
-            Activation::Sigmoid,
-            &mut rng,
-        );
+        let mut mlp = Mlp::with_skip(&[4, 8, 8, 2], Some(2), Activation::Softplus, Activation::Sigmoid, &mut rng);
         mlp.layers[1].weight.grad[0] = 3.0; // not stored
         let json = serde_json::to_string(&mlp).unwrap();
         let back: Mlp = serde_json::from_str(&json).unwrap();
         assert_eq!(back.skip_at, Some(2));
-        assert_eq!(
-            (back.hidden, back.output),
-            (Activation::Softplus, Activation::Sigmoid)
-        );
+        assert_eq!((back.hidden, back.output), (Activation::Softplus, Activation::Sigmoid));
         for (a, b) in back.layers.iter().zip(&mlp.layers) {
             assert_eq!(a.weight.value, b.weight.value);
             assert_eq!(a.bias.value, b.bias.value);
-            assert!(
-                a.weight.grad.len() == a.weight.value.len()
-                    && a.weight.grad.iter().all(|&g| g == 0.0)
-            );
+            assert!(a.weight.grad.len() == a.weight.value.len() && a.weight.grad.iter().all(|&g| g == 0.0));
         }
         let x: Vec<f32> = (0..12).map(|_| rng.gen_range(-1.0..1.0)).collect();
         assert_eq!(back.infer(&x, 3), mlp.infer(&x, 3));

@@ -10,7 +10,8 @@ pub mod miner;
 pub use dataset::DatasetConfig;
 pub use extractor::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};
 pub use field::{
-    CoarseToFine, FieldTape, FrozenPass, Hierarchical, HierarchicalSampling, RadianceField, RadianceFieldConfig, Regularized,
+    CoarseToFine, FieldTape, FrozenPass, Hierarchical, HierarchicalSampling, RadianceField, RadianceFieldConfig,
+    Regularized,
 };
 pub use loss::{ContrastiveLoss, ContrastiveLossConfig, LossValue, PatchBatch};
 pub use miner::{PairMiner, PairMinerConfig};

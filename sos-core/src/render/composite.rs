@@ -218,8 +218,11 @@ mod tests {
         (v, f)
     }
 
+    /// Per-ray inputs: sigma, delta, t, rgb, extra.
+    type RayInputs = (Vec<f32>, Vec<f32>, Vec<f32>, Vec<[f32; 3]>, Vec<f32>);
+
     /// Per-ray inputs in the reference's convention: δ = Δz·|d| with a last δ of 1e10·|d|.
-    fn ray_inputs(f: &Fixture, r: usize) -> (Vec<f32>, Vec<f32>, Vec<f32>, Vec<[f32; 3]>, Vec<f32>) {
+    fn ray_inputs(f: &Fixture, r: usize) -> RayInputs {
         let n = f.sigma.shape[1];
         let d = &f.rays_d.data[r * 3..r * 3 + 3];
         let norm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
@@ -254,7 +257,15 @@ mod tests {
         let (g_sigma_ref, g_rgb_ref, g_seg_ref) = (want("grad_sigma"), want("grad_rgb"), want("grad_seg"));
         for r in 0..n_rays {
             let (sigma, delta, z, rgb, seg) = ray_inputs(&f, r);
-            let s = RaySamples { sigma: &sigma, delta: &delta, t: &z, rgb: &rgb, extra: &seg, d_extra: 2, skipped_tau: &[] };
+            let s = RaySamples {
+                sigma: &sigma,
+                delta: &delta,
+                t: &z,
+                rgb: &rgb,
+                extra: &seg,
+                d_extra: 2,
+                skipped_tau: &[],
+            };
             let mut w = vec![0.0; n];
             let mut seg_map = [0.0; 2];
             let out = composite(&s, &mut w, &mut seg_map);
@@ -316,7 +327,8 @@ mod tests {
                 + (g.depth * o.depth + g.acc * o.acc) as f64
                 + (g_extra[0] * e[0] + g_extra[1] * e[1]) as f64
         };
-        let s = RaySamples { sigma: &sigma, delta: &delta, t: &t, rgb: &rgb, extra: &extra, d_extra: 2, skipped_tau: &[] };
+        let s =
+            RaySamples { sigma: &sigma, delta: &delta, t: &t, rgb: &rgb, extra: &extra, d_extra: 2, skipped_tau: &[] };
         let mut w = vec![0.0; 5];
         let mut e = [0.0; 2];
         let o = composite(&s, &mut w, &mut e);

@@ -64,22 +64,16 @@ impl Contraction {
     #[inline]
     pub fn to_unit(&self, p: Vec3) -> Vec3 {
         match *self {
-            Contraction::Box { min, inv_size } => [
-                (p[0] - min[0]) * inv_size[0],
-                (p[1] - min[1]) * inv_size[1],
-                (p[2] - min[2]) * inv_size[2],
-            ],
+            Contraction::Box { min, inv_size } => {
+                [(p[0] - min[0]) * inv_size[0], (p[1] - min[1]) * inv_size[1], (p[2] - min[2]) * inv_size[2]]
+            }
             Contraction::Disparity { sx, sy, inv_near, inv_far } => {
                 let depth = -p[2];
                 if depth <= 1e-6 {
                     return [-1.0, -1.0, -1.0];
                 }
                 let inv = 1.0 / depth;
-                [
-                    0.5 + 0.5 * sx * p[0] * inv,
-                    0.5 + 0.5 * sy * p[1] * inv,
-                    (inv_near - inv) / (inv_near - inv_far),
-                ]
+                [0.5 + 0.5 * sx * p[0] * inv, 0.5 + 0.5 * sy * p[1] * inv, (inv_near - inv) / (inv_near - inv_far)]
             }
             Contraction::Sphere { center, radius } => {
                 let x = [(p[0] - center[0]) / radius, (p[1] - center[1]) / radius, (p[2] - center[2]) / radius];
@@ -100,11 +94,9 @@ impl Contraction {
     /// exists; used to place occupancy probes.
     pub fn from_unit(&self, u: Vec3) -> Vec3 {
         match *self {
-            Contraction::Box { min, inv_size } => [
-                min[0] + u[0] / inv_size[0],
-                min[1] + u[1] / inv_size[1],
-                min[2] + u[2] / inv_size[2],
-            ],
+            Contraction::Box { min, inv_size } => {
+                [min[0] + u[0] / inv_size[0], min[1] + u[1] / inv_size[1], min[2] + u[2] / inv_size[2]]
+            }
             Contraction::Disparity { sx, sy, inv_near, inv_far } => {
                 let inv = inv_near - u[2] * (inv_near - inv_far);
                 let depth = 1.0 / inv;

@@ -2,7 +2,7 @@
 //! that early ray termination never evaluates what lies behind a ray's termination point, and
 //! which candidates the full pass needs (those before termination whose compositing weight
 //! exceeds the threshold). A field with a per-sample state
-//! ([`RadianceField::density_state_dim`], NeRF's trunk activations) hands it over for the kept
+//! ([`FrozenPass::density_state_dim`](crate::plugin::FrozenPass::density_state_dim), NeRF's trunk activations) hands it over for the kept
 //! candidates, so that a frozen render's colour pass does not run the density network again.
 
 use crate::plugin::field::plain;
@@ -98,8 +98,13 @@ pub fn density_pass(
         }
         KeptState { values: buffer, dim, limit, row_of: vec![u32::MAX; n] }
     });
-    let mut pass =
-        DensityPass { sigma: vec![0.0; n], keep: vec![false; n], skipped_before: vec![0.0; n], state: None, evaluated: 0 };
+    let mut pass = DensityPass {
+        sigma: vec![0.0; n],
+        keep: vec![false; n],
+        skipped_before: vec![0.0; n],
+        state: None,
+        evaluated: 0,
+    };
     // Optical depth at which the transmittance reaches `early_stop`.
     let stop_at = if early_stop > 0.0 { -early_stop.ln() } else { f32::INFINITY };
     let end_of = |r: usize| candidates.ray_start[r + 1] as usize;
@@ -307,7 +312,8 @@ mod tests {
                 assert_eq!(&state.values[3 * row as usize..][..3], &c.positions[i as usize][..]);
             }
             // A state one row over its budget is dropped; the decisions stay.
-            let tight = density_pass(&Ramp { with_state: true }, &c, early_stop, min_weight, 4 * (3 * kept - 1), Vec::new());
+            let tight =
+                density_pass(&Ramp { with_state: true }, &c, early_stop, min_weight, 4 * (3 * kept - 1), Vec::new());
             assert!(tight.state.is_none());
             assert_eq!((tight.keep, tight.sigma), (pass.keep.clone(), pass.sigma.clone()));
             let plain = density_pass(&Ramp { with_state: false }, &c, early_stop, min_weight, usize::MAX, Vec::new());

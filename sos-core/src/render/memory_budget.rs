@@ -63,9 +63,15 @@ pub fn machine_default_gib() -> (f64, String) {
     match machine_memory_bytes() {
         Some(bytes) => {
             let gib = bytes as f64 / GIB;
-            ((MACHINE_SHARE * gib * 10.0).floor() / 10.0, format!("{:.0}% of the machine's {gib:.1} GiB", MACHINE_SHARE * 100.0))
+            (
+                (MACHINE_SHARE * gib * 10.0).floor() / 10.0,
+                format!("{:.0}% of the machine's {gib:.1} GiB", MACHINE_SHARE * 100.0),
+            )
         }
-        None => (MACHINE_SHARE * 8.0, format!("{:.0}% of 8 GiB (the machine's memory could not be read)", MACHINE_SHARE * 100.0)),
+        None => (
+            MACHINE_SHARE * 8.0,
+            format!("{:.0}% of 8 GiB (the machine's memory could not be read)", MACHINE_SHARE * 100.0),
+        ),
     }
 }
 

@@ -55,7 +55,8 @@ impl OccupancyGrid {
         let fresh: Vec<f32> = (0..res)
             .into_par_iter()
             .flat_map_iter(|k| {
-                let mut local = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ (k as u64).wrapping_mul(0x9E3779B97F4A7C15));
+                let mut local =
+                    rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ (k as u64).wrapping_mul(0x9E3779B97F4A7C15));
                 let mut positions = Vec::with_capacity(slab);
                 for j in 0..res {
                     for i in 0..res {

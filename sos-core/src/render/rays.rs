@@ -41,10 +41,7 @@ impl RayBatch {
 
     /// Rays `[start, end)` of this batch.
     pub fn slice(&self, start: usize, end: usize) -> RayBatch {
-        RayBatch {
-            origins: self.origins[start..end].to_vec(),
-            directions: self.directions[start..end].to_vec(),
-        }
+        RayBatch { origins: self.origins[start..end].to_vec(), directions: self.directions[start..end].to_vec() }
     }
 }
 

@@ -17,9 +17,9 @@ use crate::camera::Vec3;
 use crate::plugin::field::{plain, Hierarchical};
 use crate::plugin::{FieldTape, RadianceField};
 use crate::render::composite::{self, RayColor, RayGrad, RaySamples};
-use crate::render::memory_budget::MemoryBudget;
 use crate::render::contraction::Contraction;
 use crate::render::density_pass::{density_pass, KeptState};
+use crate::render::memory_budget::MemoryBudget;
 use crate::render::occupancy::OccupancyGrid;
 use crate::render::rays::RayBatch;
 use crate::render::sampler::{self, MarchOptions, Samples};
@@ -27,9 +27,6 @@ use crate::scene::SceneExtent;
 
 /// Rays per parallel marching task.
 const MARCH_CHUNK: usize = 256;
-
-/// Most bytes of field state ([`RadianceField::density_state_dim`]) a frozen render keeps
-/// from its density pass for the colour pass (NeRF: 1 KiB per kept sample).
 
 /// How to render.
 #[derive(Debug, Clone, Copy)]
@@ -184,7 +181,14 @@ fn evaluate(
     if !record {
         let mut seg = seg.buffer(field, n, buffers);
         if !seg.is_empty() {
-            plain::forward_with_seg_input(field, &samples.positions, &samples.directions, &mut density, &mut rgb, &mut seg);
+            plain::forward_with_seg_input(
+                field,
+                &samples.positions,
+                &samples.directions,
+                &mut density,
+                &mut rgb,
+                &mut seg,
+            );
             return (density, rgb, None, seg);
         }
     }
@@ -410,7 +414,15 @@ fn march_parallel(ctx: RenderContext, rays: &RayBatch, options: MarchOptions, rn
         .map(|c| {
             let (start, end) = (c * MARCH_CHUNK, ((c + 1) * MARCH_CHUNK).min(rays.len()));
             let mut local = rand_chacha::ChaCha8Rng::seed_from_u64(seeds[c]);
-            sampler::march(ctx.extent, ctx.contraction, ctx.occupancy, ctx.near, &rays.slice(start, end), options, &mut local)
+            sampler::march(
+                ctx.extent,
+                ctx.contraction,
+                ctx.occupancy,
+                ctx.near,
+                &rays.slice(start, end),
+                options,
+                &mut local,
+            )
         })
         .collect();
     concat(parts)
@@ -450,11 +462,7 @@ impl Rendered {
             rgb: &self.rgb[range.clone()],
             extra: &extra[range.start * d_extra..range.end * d_extra],
             d_extra,
-            skipped_tau: if self.samples.skipped_tau.is_empty() {
-                &[]
-            } else {
-                &self.samples.skipped_tau[range]
-            },
+            skipped_tau: if self.samples.skipped_tau.is_empty() { &[] } else { &self.samples.skipped_tau[range] },
         }
     }
 
@@ -743,7 +751,12 @@ mod tests {
         let field = Ball::new(None, false);
         let (extent, contraction, rays) = setup();
         let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
-        let options = RenderOptions { march: MarchOptions { steps: 128, stratified: false }, early_stop: 0.0, min_weight: 0.0, memory: MemoryBudget::unlimited() };
+        let options = RenderOptions {
+            march: MarchOptions { steps: 128, stratified: false },
+            early_stop: 0.0,
+            min_weight: 0.0,
+            memory: MemoryBudget::unlimited(),
+        };
         // Channel 0 is 1 everywhere (so it composites to the selected weight), channel 1 is z.
         let eval = |p: &[Vec3]| p.iter().flat_map(|p| [1.0, p[2]]).collect::<Vec<f32>>();
         let all = ExtraChannels { dim: 2, min_weight: 0.0, eval: &eval };
@@ -782,14 +795,30 @@ mod tests {
         ] {
             let rng = || rand_chacha::ChaCha8Rng::seed_from_u64(0);
             let plain = render(&field, ctx, &rays, options, false, &mut rng());
-            let kept = render_with_seg_input(&field, ctx, &rays, options, usize::MAX, &mut FrozenBuffers::default(), &mut rng());
+            let kept = render_with_seg_input(
+                &field,
+                ctx,
+                &rays,
+                options,
+                usize::MAX,
+                &mut FrozenBuffers::default(),
+                &mut rng(),
+            );
             assert!(plain.seg_input.is_empty());
             assert_eq!((&kept.samples.t, &kept.density, &kept.rgb), (&plain.samples.t, &plain.density, &plain.rgb));
             let mut want = vec![0.0; kept.samples.len() * 2];
             field.seg_input(&kept.samples.positions, &mut want);
             assert!(!want.is_empty());
             assert_eq!(kept.seg_input, want);
-            let over = render_with_seg_input(&field, ctx, &rays, options, want.len() * 4 - 1, &mut FrozenBuffers::default(), &mut rng());
+            let over = render_with_seg_input(
+                &field,
+                ctx,
+                &rays,
+                options,
+                want.len() * 4 - 1,
+                &mut FrozenBuffers::default(),
+                &mut rng(),
+            );
             assert!(over.seg_input.is_empty(), "over its budget, nothing is kept");
             // A field that keeps its state from the density pass gives the same render.
             // Its buffers are reused from call to call, whatever they held.
@@ -813,8 +842,14 @@ mod tests {
     fn early_termination_skips_density_work_and_keeps_colours() {
         let field = Ball::new(None, false);
         let march = MarchOptions { steps: 256, stratified: false };
-        let (full, _) = colors(&field, RenderOptions { march, early_stop: 0.0, min_weight: 0.0, memory: MemoryBudget::unlimited() });
-        let (pruned, evaluated) = colors(&field, RenderOptions { march, early_stop: 1e-4, min_weight: 1e-4, memory: MemoryBudget::unlimited() });
+        let (full, _) = colors(
+            &field,
+            RenderOptions { march, early_stop: 0.0, min_weight: 0.0, memory: MemoryBudget::unlimited() },
+        );
+        let (pruned, evaluated) = colors(
+            &field,
+            RenderOptions { march, early_stop: 1e-4, min_weight: 1e-4, memory: MemoryBudget::unlimited() },
+        );
         let hits = full.iter().filter(|c| c.acc > 0.5).count();
         assert!(hits > 20, "the ball covers part of the image ({hits} rays)");
         for (a, b) in full.iter().zip(&pruned) {
@@ -824,17 +859,36 @@ mod tests {
             assert!((a.acc - b.acc).abs() < 2e-3);
         }
         // Rays through the ball stop inside it, skipping at least the back half of the box.
-        let (_, all) = colors(&field, RenderOptions { march, early_stop: 0.0, min_weight: 1e-9, memory: MemoryBudget::unlimited() });
+        let (_, all) = colors(
+            &field,
+            RenderOptions { march, early_stop: 0.0, min_weight: 1e-9, memory: MemoryBudget::unlimited() },
+        );
         assert!(evaluated + 100 * hits < all, "evaluated {evaluated} of {all} densities ({hits} rays hit)");
     }
 
     #[test]
     fn hierarchical_sampling_concentrates_samples_and_matches_a_dense_render() {
         let dense = Ball::new(None, false);
-        let (want, _) = colors(&dense, RenderOptions { march: MarchOptions { steps: 2048, stratified: false }, early_stop: 0.0, min_weight: 0.0, memory: MemoryBudget::unlimited() });
+        let (want, _) = colors(
+            &dense,
+            RenderOptions {
+                march: MarchOptions { steps: 2048, stratified: false },
+                early_stop: 0.0,
+                min_weight: 0.0,
+                memory: MemoryBudget::unlimited(),
+            },
+        );
         let h = Hierarchical { coarse_samples: 32, fine_samples: 64 };
         let field = Ball::new(Some(h), false);
-        let (got, _) = colors(&field, RenderOptions { march: MarchOptions { steps: 8, stratified: false }, early_stop: 0.0, min_weight: 0.0, memory: MemoryBudget::unlimited() });
+        let (got, _) = colors(
+            &field,
+            RenderOptions {
+                march: MarchOptions { steps: 8, stratified: false },
+                early_stop: 0.0,
+                min_weight: 0.0,
+                memory: MemoryBudget::unlimited(),
+            },
+        );
         let mut worst = 0.0f32;
         for (a, b) in want.iter().zip(&got) {
             worst = worst.max((a.acc - b.acc).abs());
@@ -847,7 +901,12 @@ mod tests {
         let (extent, contraction, rays) = setup();
         let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-        let options = RenderOptions { march: MarchOptions { steps: 8, stratified: true }, early_stop: 0.0, min_weight: 0.0, memory: MemoryBudget::unlimited() };
+        let options = RenderOptions {
+            march: MarchOptions { steps: 8, stratified: true },
+            early_stop: 0.0,
+            min_weight: 0.0,
+            memory: MemoryBudget::unlimited(),
+        };
         let r = render(&field, ctx, &rays, options, true, &mut rng);
         let coarse = r.coarse.expect("proposal pass with record");
         assert_eq!(coarse.colors.len(), rays.len());

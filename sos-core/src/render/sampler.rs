@@ -290,7 +290,13 @@ pub fn sample_pdf(edges: &[f32], weights: &[f32], n: usize, uniform: Option<&mut
 /// hierarchical proposal pass kept after empty-space skipping). Like [`sample_pdf`], a padding
 /// of `1e-5` per bin keeps empty rays well defined, `uniform` draws the quantiles at random
 /// (training) instead of evenly spaced, and the result is sorted. No bins, no samples.
-pub fn sample_bins<R: Rng>(starts: &[f32], ends: &[f32], weights: &[f32], n: usize, uniform: Option<&mut R>) -> Vec<f32> {
+pub fn sample_bins<R: Rng>(
+    starts: &[f32],
+    ends: &[f32],
+    weights: &[f32],
+    n: usize,
+    uniform: Option<&mut R>,
+) -> Vec<f32> {
     let m = weights.len();
     debug_assert!(starts.len() == m && ends.len() == m);
     if m == 0 || n == 0 {
@@ -375,7 +381,6 @@ mod tests {
     use crate::camera::Camera;
     use rand::SeedableRng;
 
-
     #[test]
     fn merged_intervals_partition_the_segments_and_skip_gaps() {
         // Two touching bins [0, 1], [1, 2], a gap, then [5, 6].
@@ -404,7 +409,7 @@ mod tests {
         let t = sample_bins(&starts, &ends, &weights, 4000, Some(&mut rng));
         assert!(t.windows(2).all(|w| w[0] <= w[1]));
         assert!(t.iter().all(|&x| (0.0..=1.0).contains(&x) || (4.0..=5.0).contains(&x) || (9.0..=10.0).contains(&x)));
-        let (b, c) = (t.iter().filter(|&&x| x >= 4.0 && x <= 5.0).count(), t.iter().filter(|&&x| x >= 9.0).count());
+        let (b, c) = (t.iter().filter(|&&x| (4.0..=5.0).contains(&x)).count(), t.iter().filter(|&&x| x >= 9.0).count());
         assert!((c as f32 / b as f32 - 3.0).abs() < 0.3, "{b} {c}");
         let even = sample_bins::<rand_chacha::ChaCha8Rng>(&starts, &ends, &weights, 8, None);
         assert_eq!(even.len(), 8);
@@ -431,7 +436,15 @@ mod tests {
         let cam = Camera::look_at([0.0, 0.0, 3.0], [0.0; 3], [0.0, 1.0, 0.0], 8, 8, 8.0);
         let rays = RayBatch::full_image(&cam);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-        let s = march(&extent, &Contraction::new(&extent), None, 0.0, &rays, MarchOptions { steps: 64, stratified: true }, &mut rng);
+        let s = march(
+            &extent,
+            &Contraction::new(&extent),
+            None,
+            0.0,
+            &rays,
+            MarchOptions { steps: 64, stratified: true },
+            &mut rng,
+        );
         assert_eq!(s.n_rays(), 64);
         for r in 0..s.n_rays() {
             let range = s.range(r);
@@ -449,7 +462,15 @@ mod tests {
         let extent = SceneExtent::ForwardFacing { near: 1.0, far: 10.0, focal: 10.0, width: 8.0, height: 8.0 };
         let rays = RayBatch { origins: vec![[0.0; 3]], directions: vec![[0.0, 0.0, -1.0]] };
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-        let s = march(&extent, &Contraction::new(&extent), None, 0.0, &rays, MarchOptions { steps: 32, stratified: false }, &mut rng);
+        let s = march(
+            &extent,
+            &Contraction::new(&extent),
+            None,
+            0.0,
+            &rays,
+            MarchOptions { steps: 32, stratified: false },
+            &mut rng,
+        );
         assert_eq!(s.len(), 32);
         let span: f32 = s.delta.iter().sum();
         assert!((span - 9.0).abs() < 1e-3, "{span}");

@@ -96,8 +96,8 @@ mod tests {
             let row = if i < 20 { [1.0 + jitter, 0.0] } else { [0.0, 1.0 + jitter] };
             logits.extend_from_slice(&row);
         }
+        labels.extend([0; 10]);
         for _ in 0..10 {
-            labels.push(0);
             logits.extend_from_slice(&[5.0, 5.0]);
         }
         let split = split_cluster(&labels, 2, 1, &logits, 2, &MaskConfig::default(), 0).expect("splits");

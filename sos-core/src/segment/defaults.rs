@@ -5,7 +5,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::config::LossEntry;
 use crate::error::BuildError;
-use crate::plugin::{ContrastiveLossConfig, FeatureExtractorConfig, PairMinerConfig, RadianceField, RadianceFieldConfig};
+use crate::plugin::{
+    ContrastiveLossConfig, FeatureExtractorConfig, PairMinerConfig, RadianceField, RadianceFieldConfig,
+};
 use crate::registry::find;
 use crate::scene::SceneExtent;
 

@@ -525,7 +525,10 @@ pub fn saliency_extractor(session: &Session) -> Result<Option<Box<dyn FeatureExt
             .ok_or_else(|| {
                 no_saliency(
                     session,
-                    &format!("no `[extractor]` is configured and `{}` is not linked", crate::segment::defaults::DEFAULT_EXTRACTOR),
+                    &format!(
+                        "no `[extractor]` is configured and `{}` is not linked",
+                        crate::segment::defaults::DEFAULT_EXTRACTOR
+                    ),
                 )
             })?
             .build(&ctx)?,
@@ -602,7 +605,15 @@ mod tests {
         // Saliency is higher on the square.
         let saliency: Vec<f32> = (0..w * h).map(|i| if inside(i) { 0.7 } else { 0.2 }).collect();
         for (softmax, normalize) in [(false, false), (true, false), (false, true)] {
-            let masks = MaskConfig { clusters: 2, restarts: 3, softmax, normalize, foreground: ForegroundRule::Saliency, keep: KeepRegions::All, ..MaskConfig::default() };
+            let masks = MaskConfig {
+                clusters: 2,
+                restarts: 3,
+                softmax,
+                normalize,
+                foreground: ForegroundRule::Saliency,
+                keep: KeepRegions::All,
+                ..MaskConfig::default()
+            };
             let km = cluster_logits(&logits, 2, &masks, 0).unwrap();
             assert_eq!(km.k, 2);
             let fg = foreground_by_saliency(&km.labels, km.k, &saliency);
@@ -632,8 +643,7 @@ mod tests {
         let split = |normalize: bool| {
             let masks = MaskConfig { normalize, ..MaskConfig::default() };
             let labels = cluster_logits(&logits, 2, &masks, 0).unwrap().labels;
-            labels.iter().skip(1).take(19).all(|&l| l == labels[0])
-                && labels[20..].iter().all(|&l| l != labels[0])
+            labels.iter().skip(1).take(19).all(|&l| l == labels[0]) && labels[20..].iter().all(|&l| l != labels[0])
         };
         assert!(split(true));
         assert!(!split(false));

@@ -144,7 +144,11 @@ pub fn fill_empty_depths(depth: &mut [f32]) {
 }
 
 /// Runs stage 2 for `segment.steps` steps.
-pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter, show_progress: bool) -> Result<SegStepStats, RunError> {
+pub fn train_segmentation(
+    session: &mut Session,
+    seg: &mut Segmenter,
+    show_progress: bool,
+) -> Result<SegStepStats, RunError> {
     train_segmentation_observed(session, seg, show_progress, &mut Unobserved)
 }
 
@@ -237,11 +241,14 @@ pub fn train_segmentation_observed(
         }
         if !stats.total.is_finite() || grad_logits.iter().any(|g| !g.is_finite()) {
             bad_steps += 1;
-            log_line(&bar, format!(
-                "stage 2 step {}: non-finite loss or gradient (views {:?}), step skipped",
-                seg.step,
-                patches.iter().map(|p| p.view).collect::<Vec<_>>()
-            ));
+            log_line(
+                &bar,
+                format!(
+                    "stage 2 step {}: non-finite loss or gradient (views {:?}), step skipped",
+                    seg.step,
+                    patches.iter().map(|p| p.view).collect::<Vec<_>>()
+                ),
+            );
             if bad_steps >= MAX_BAD_STEPS {
                 return Err(RunError::Diverged(format!("{MAX_BAD_STEPS} non-finite stage-2 steps in a row")));
             }
@@ -280,7 +287,8 @@ pub fn train_segmentation_observed(
             let scale = 2.0 * cfg.photometric_weight / (rays.len() * 3) as f32;
             let grads: Vec<RayGrad> = (0..rays.len())
                 .map(|ray| {
-                    let mut g = RayGrad { extra: &ray_grad_extra[ray * d_seg..(ray + 1) * d_seg], ..Default::default() };
+                    let mut g =
+                        RayGrad { extra: &ray_grad_extra[ray * d_seg..(ray + 1) * d_seg], ..Default::default() };
                     for k in 0..3 {
                         g.rgb[k] = scale * (r.colors[ray].rgb[k] - targets[ray][k]);
                     }
@@ -306,10 +314,15 @@ pub fn train_segmentation_observed(
             seg.teacher.hits + seg.teacher.misses
         ));
         bar.set_position(seg.step as u64);
-        if !show_progress && (seg.step % (cfg.steps / 10).max(1) == 0 || seg.step == cfg.steps) {
+        if !show_progress && (seg.step.is_multiple_of((cfg.steps / 10).max(1)) || seg.step == cfg.steps) {
             eprintln!(
                 "stage 2 step {}/{}: loss {:+.5}, {:.2} s/step, {:.0} head samples/ray, {:.0} s",
-                seg.step, cfg.steps, last.total, elapsed / seg.step.max(1) as f64, last.samples_per_ray, elapsed
+                seg.step,
+                cfg.steps,
+                last.total,
+                elapsed / seg.step.max(1) as f64,
+                last.samples_per_ray,
+                elapsed
             );
         }
     }
@@ -379,10 +392,7 @@ fn captured_targets(session: &Session, patches: &[Patch]) -> Vec<[f32; 3]> {
 }
 
 fn patch_mse(colors: &[RayColor], targets: &[[f32; 3]]) -> f64 {
-    let sum: f64 = colors
-        .iter()
-        .zip(targets)
-        .map(|(c, t)| (0..3).map(|k| ((c.rgb[k] - t[k]) as f64).powi(2)).sum::<f64>())
-        .sum();
+    let sum: f64 =
+        colors.iter().zip(targets).map(|(c, t)| (0..3).map(|k| ((c.rgb[k] - t[k]) as f64).powi(2)).sum::<f64>()).sum();
     sum / (colors.len() * 3).max(1) as f64
 }

@@ -27,8 +27,8 @@ use crate::error::BuildError;
 use crate::image::RgbImage;
 use crate::plugin::field::plain;
 use crate::plugin::{
-    BuildContext, ContrastiveLossConfig, DatasetConfig, FeatureExtractorConfig, PairMinerConfig, PatchBatch, RadianceField,
-    RadianceFieldConfig,
+    BuildContext, ContrastiveLossConfig, DatasetConfig, FeatureExtractorConfig, PairMinerConfig, PatchBatch,
+    RadianceField, RadianceFieldConfig,
 };
 use crate::registry::{find, registrations};
 use crate::scene::SceneExtent;
@@ -124,8 +124,10 @@ fn round_trips_through_toml<C: serde::Serialize + ?Sized, T: serde::Serialize>(
     struct Wrap<'a, C: ?Sized> {
         field: &'a C,
     }
-    let text = toml::to_string(&Wrap { field: config }).unwrap_or_else(|e| panic!("{kind}: default config does not serialise: {e}"));
-    let back = read(&text).unwrap_or_else(|e| panic!("{kind}: its own default config does not read back:\n{text}\n{e}"));
+    let text = toml::to_string(&Wrap { field: config })
+        .unwrap_or_else(|e| panic!("{kind}: default config does not serialise: {e}"));
+    let back =
+        read(&text).unwrap_or_else(|e| panic!("{kind}: its own default config does not read back:\n{text}\n{e}"));
     let again = toml::to_string(&Wrap { field: &back }).expect("serialises");
     assert_eq!(text, again, "{kind}: default config changes through TOML");
 }
@@ -193,8 +195,14 @@ fn rgb_bits(v: &[[f32; 3]]) -> Vec<u32> {
 fn outputs_have_their_shapes_and_are_finite(kind: &str, field: &dyn RadianceField, p: &[Vec3], d: &[Vec3]) {
     let out = forward(field, p, d);
     for (i, (&sigma, c)) in out.density.iter().zip(&out.rgb).enumerate() {
-        assert!(sigma.is_finite() && sigma >= 0.0, "{kind}: density of sample {i} is {sigma} (must be finite and >= 0)");
-        assert!(c.iter().all(|v| v.is_finite() && (0.0..=1.0).contains(v)), "{kind}: colour of sample {i} is {c:?} (must lie in [0, 1])");
+        assert!(
+            sigma.is_finite() && sigma >= 0.0,
+            "{kind}: density of sample {i} is {sigma} (must be finite and >= 0)"
+        );
+        assert!(
+            c.iter().all(|v| v.is_finite() && (0.0..=1.0).contains(v)),
+            "{kind}: colour of sample {i} is {c:?} (must lie in [0, 1])"
+        );
     }
     let mut cheap = vec![0.0; p.len()];
     field.density(p, &mut cheap);
@@ -246,7 +254,11 @@ fn capabilities_equal_the_plain_path(kind: &str, field: &mut dyn RadianceField, 
     if let Some(fast) = field.frozen_pass() {
         let (mut density, mut rgb, mut seg) = (vec![0.0; n], vec![[0.0; 3]; n], vec![0.0; n * dim]);
         fast.forward_with_seg_input(p, d, &mut density, &mut rgb, &mut seg);
-        assert_eq!(bits(&density), bits(&plain_out.density), "{kind}: fused forward_with_seg_input changes the density");
+        assert_eq!(
+            bits(&density),
+            bits(&plain_out.density),
+            "{kind}: fused forward_with_seg_input changes the density"
+        );
         assert_eq!(rgb_bits(&rgb), rgb_bits(&plain_out.rgb), "{kind}: fused forward_with_seg_input changes the colour");
         assert_eq!(bits(&seg), bits(&plain_seg), "{kind}: fused forward_with_seg_input changes the segmentation input");
         let width = fast.density_state_dim();
@@ -263,8 +275,10 @@ fn capabilities_equal_the_plain_path(kind: &str, field: &mut dyn RadianceField, 
             let (mut rgb, mut seg) = (vec![[0.0; 3]; rows.len()], vec![0.0; rows.len() * dim]);
             fast.colour_from_state(&sp, &sd, &state, &rows, &mut rgb, Some(&mut seg));
             let want_rgb: Vec<[f32; 3]> = rows.iter().map(|&r| plain_out.rgb[r as usize]).collect();
-            let want_seg: Vec<f32> =
-                rows.iter().flat_map(|&r| plain_seg[r as usize * dim..(r as usize + 1) * dim].iter().copied()).collect();
+            let want_seg: Vec<f32> = rows
+                .iter()
+                .flat_map(|&r| plain_seg[r as usize * dim..(r as usize + 1) * dim].iter().copied())
+                .collect();
             assert_eq!(rgb_bits(&rgb), rgb_bits(&want_rgb), "{kind}: colour_from_state changes the colour");
             assert_eq!(bits(&seg), bits(&want_seg), "{kind}: colour_from_state changes the segmentation input");
         }
@@ -310,7 +324,8 @@ fn loss_weights(n: usize) -> (Vec<f32>, Vec<[f32; 3]>) {
 fn weighted_sum(field: &dyn RadianceField, p: &[Vec3], d: &[Vec3], (a, b): &(Vec<f32>, Vec<[f32; 3]>)) -> f64 {
     let out = forward(field, p, d);
     let density: f64 = out.density.iter().zip(a).map(|(&s, &w)| s as f64 * w as f64).sum();
-    let colour: f64 = out.rgb.iter().zip(b).flat_map(|(c, w)| c.iter().zip(w).map(|(&c, &w)| c as f64 * w as f64)).sum();
+    let colour: f64 =
+        out.rgb.iter().zip(b).flat_map(|(c, w)| c.iter().zip(w).map(|(&c, &w)| c as f64 * w as f64)).sum();
     density + colour
 }
 
@@ -403,7 +418,11 @@ fn state_round_trips(kind: &str, field: &dyn RadianceField, other: &mut dyn Radi
     assert_eq!(rgb_bits(&a.rgb), rgb_bits(&b.rgb), "{kind}: a loaded field renders another colour");
     for cut in [0, state.len() / 2, state.len().saturating_sub(1)] {
         if cut < state.len() {
-            assert!(other.load_state(&state[..cut]).is_err(), "{kind}: a state cut at byte {cut} of {} loads", state.len());
+            assert!(
+                other.load_state(&state[..cut]).is_err(),
+                "{kind}: a state cut at byte {cut} of {} loads",
+                state.len()
+            );
         }
     }
     let wrong = vec![0.5; field.num_parameters() + 1];
@@ -429,15 +448,18 @@ fn check_two_stage_run(kind: &str, config: &dyn RadianceFieldConfig, hide_capabi
          [segment]\nsteps = 2\npatches = 2\npatch_size = 8\nstride = 1\n\n{field_toml}",
         dir.display().to_string()
     );
-    let run_config = RunConfig::parse(&text, Path::new("conformance.toml")).unwrap_or_else(|e| panic!("{kind}: {e}\n{text}"));
+    let run_config =
+        RunConfig::parse(&text, Path::new("conformance.toml")).unwrap_or_else(|e| panic!("{kind}: {e}\n{text}"));
     let mut session = crate::train::Session::from_config(run_config, Path::new(""))
         .unwrap_or_else(|e| panic!("{kind}: a run cannot start: {e}"));
     if hide_capabilities {
         let field = config.build(&session.scene.extent, session.config.seed).expect("built once already");
         session.field = Box::new(Bare(field));
     }
-    crate::train::photometric::train_photometric(&mut session, false).unwrap_or_else(|e| panic!("{kind}: stage 1 fails: {e}"));
-    let mut seg = crate::segment::train::Segmenter::build(&session).unwrap_or_else(|e| panic!("{kind}: stage 2 cannot start: {e}"));
+    crate::train::photometric::train_photometric(&mut session, false)
+        .unwrap_or_else(|e| panic!("{kind}: stage 1 fails: {e}"));
+    let mut seg = crate::segment::train::Segmenter::build(&session)
+        .unwrap_or_else(|e| panic!("{kind}: stage 2 cannot start: {e}"));
     let stats = crate::segment::train::train_segmentation(&mut session, &mut seg, false)
         .unwrap_or_else(|e| panic!("{kind}: stage 2 fails: {e}"));
     assert!(stats.total.is_finite(), "{kind}: stage-2 loss {}", stats.total);
@@ -468,7 +490,8 @@ fn build_or_report<T>(role: &str, kind: &str, built: Result<T, BuildError>) -> O
 /// A teacher's default config builds (or names the missing resource), and its features have
 /// the documented shapes, are finite and reproduce on 1 and 2 threads.
 pub fn check_extractor_kind(kind: &str) {
-    let registration = find::<dyn FeatureExtractorConfig>(kind).unwrap_or_else(|| panic!("no extractor `{kind}` is registered"));
+    let registration =
+        find::<dyn FeatureExtractorConfig>(kind).unwrap_or_else(|| panic!("no extractor `{kind}` is registered"));
     let mut config = (registration.default_config)();
     config.derive_for(&crate::derived::PatchFacts { patch_size: 64, stride: 6 });
     let Some(extractor) = build_or_report("extractor", kind, config.build(&BuildContext::default())) else {
@@ -490,7 +513,11 @@ pub fn check_extractor_kind(kind: &str) {
     let (one, two) = (on(1), on(2));
     assert_eq!(one.len(), images.len(), "extractor `{kind}`: one map per image");
     for (m, m2) in one.iter().zip(&two) {
-        assert_eq!(m.data.len(), m.channels * m.height * m.width, "extractor `{kind}`: data is not [channels, height, width]");
+        assert_eq!(
+            m.data.len(),
+            m.channels * m.height * m.width,
+            "extractor `{kind}`: data is not [channels, height, width]"
+        );
         assert!(m.channels > 0 && m.height > 0 && m.width > 0, "extractor `{kind}`: empty feature map");
         assert!(m.data.iter().chain(&m.cls).all(|v| v.is_finite()), "extractor `{kind}`: non-finite features");
         if let Some(s) = &m.saliency {
@@ -523,7 +550,8 @@ pub fn check_miner_kind(kind: &str) {
 /// A loss's default config builds; on a random batch its value and gradient are finite, the
 /// gradient matches finite differences of the value, and it reproduces per seed.
 pub fn check_loss_kind(kind: &str) {
-    let registration = find::<dyn ContrastiveLossConfig>(kind).unwrap_or_else(|| panic!("no loss `{kind}` is registered"));
+    let registration =
+        find::<dyn ContrastiveLossConfig>(kind).unwrap_or_else(|| panic!("no loss `{kind}` is registered"));
     let Some(loss) = build_or_report("loss", kind, (registration.default_config)().build()) else {
         return;
     };
@@ -544,7 +572,8 @@ pub fn check_loss_kind(kind: &str) {
         .collect();
     let negatives = vec![1, 0];
     let value = |logits: &[f32], grad: &mut [f32]| {
-        let batch = PatchBatch { n_patches, patch, d_seg, logits, points: &points, features: &features, negatives: &negatives };
+        let batch =
+            PatchBatch { n_patches, patch, d_seg, logits, points: &points, features: &features, negatives: &negatives };
         loss.loss_and_grad(&batch, &mut ChaCha8Rng::seed_from_u64(4), 1.0, grad)
     };
     let mut grad = vec![0.0; logits.len()];
@@ -552,7 +581,11 @@ pub fn check_loss_kind(kind: &str) {
     assert!(v.total.is_finite() && v.terms.iter().all(|t| t.1.is_finite()), "loss `{kind}`: non-finite value {v:?}");
     assert!(grad.iter().all(|g| g.is_finite()), "loss `{kind}`: non-finite gradient");
     let mut again = vec![0.0; logits.len()];
-    assert_eq!(value(&logits, &mut again).total.to_bits(), v.total.to_bits(), "loss `{kind}`: not reproducible from its seed");
+    assert_eq!(
+        value(&logits, &mut again).total.to_bits(),
+        v.total.to_bits(),
+        "loss `{kind}`: not reproducible from its seed"
+    );
     let (mut err, mut norm) = (0.0f64, 0.0f64);
     let mut scratch = vec![0.0; logits.len()];
     // The loss is computed in f64 from f32 logits: a small step keeps the clamps' kinks
@@ -570,7 +603,10 @@ pub fn check_loss_kind(kind: &str) {
         norm += (grad[i] as f64).powi(2);
     }
     let (err, norm) = (err.sqrt(), norm.sqrt());
-    assert!(err <= 0.05 * norm + 1e-4, "loss `{kind}`: gradient disagrees with finite differences ({err:.3e} against {norm:.3e})");
+    assert!(
+        err <= 0.05 * norm + 1e-4,
+        "loss `{kind}`: gradient disagrees with finite differences ({err:.3e} against {norm:.3e})"
+    );
 }
 
 /// A field seen through its required methods only: every capability getter keeps its default

@@ -69,9 +69,8 @@ impl Checkpoint {
 /// Reads a checkpoint written by [`save`].
 pub fn load(path: &Path) -> Result<Checkpoint, RunError> {
     let fail = |message: String| RunError::Checkpoint { path: path.to_path_buf(), message };
-    let bytes = std::fs::read(path).map_err(|e| {
-        fail(format!("{e}; run `sos train` first or pass the checkpoint of a finished run"))
-    })?;
+    let bytes = std::fs::read(path)
+        .map_err(|e| fail(format!("{e}; run `sos train` first or pass the checkpoint of a finished run")))?;
     if bytes.len() < 8 || &bytes[..8] != MAGIC {
         return Err(fail("not a nerf-sos checkpoint".into()));
     }

@@ -77,15 +77,13 @@ pub fn evaluate_views(session: &Session, write_images: bool) -> Result<ImageEval
         let v = &session.scene.views[i];
         let (img, _) = session.render_view(&v.camera);
         rays += img.width * img.height;
-        let mse = crate::metrics::mse(&img.data, &v.image.data).map_err(|e| {
-            crate::error::IoError::file(&session.run_dir, format!("MSE of view {}: {e}", v.name))
-        })?;
+        let mse = crate::metrics::mse(&img.data, &v.image.data)
+            .map_err(|e| crate::error::IoError::file(&session.run_dir, format!("MSE of view {}: {e}", v.name)))?;
         if write_images {
             img.save_png(&session.run_dir.join("test").join(format!("{}.png", v.name)))?;
         }
-        let ssim = crate::metrics::ssim(&img, &v.image).map_err(|e| {
-            crate::error::IoError::file(&session.run_dir, format!("SSIM of view {}: {e}", v.name))
-        })?;
+        let ssim = crate::metrics::ssim(&img, &v.image)
+            .map_err(|e| crate::error::IoError::file(&session.run_dir, format!("SSIM of view {}: {e}", v.name)))?;
         // Floored at 120 dB for an exact view; a NaN render stays NaN, never a perfect score.
         views.push(ViewQuality { view: v.name.clone(), psnr: psnr_from_mse(mse), mse, ssim });
     }

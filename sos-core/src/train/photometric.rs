@@ -72,10 +72,9 @@ fn all_finite(g_sigma: &[f32], g_rgb: &[[f32; 3]]) -> bool {
 /// `view:col,row`.
 fn describe_bad_rays(fine: &[RayColor], coarse: Option<&[RayColor]>, pixels: &[(usize, u32, u32)]) -> String {
     let bad = |c: &RayColor| !(c.rgb.iter().all(|v| v.is_finite()) && c.acc.is_finite());
-    let idx: Vec<usize> = (0..pixels.len())
-        .filter(|&i| bad(&fine[i]) || coarse.is_some_and(|c| bad(&c[i])))
-        .collect();
-    let first: Vec<String> = idx.iter().take(8).map(|&i| format!("{}:{},{}", pixels[i].0, pixels[i].1, pixels[i].2)).collect();
+    let idx: Vec<usize> = (0..pixels.len()).filter(|&i| bad(&fine[i]) || coarse.is_some_and(|c| bad(&c[i]))).collect();
+    let first: Vec<String> =
+        idx.iter().take(8).map(|&i| format!("{}:{},{}", pixels[i].0, pixels[i].1, pixels[i].2)).collect();
     let views: std::collections::BTreeSet<usize> = pixels.iter().map(|p| p.0).collect();
     format!(
         "{} rays from views {:?}; {} rendered non-finite colours{}{}",
@@ -189,8 +188,7 @@ pub fn train_photometric_observed(
                 }
             }
             let coarse_g = coarse.as_ref().map(|c| c.composite_backward(&[], 0, &coarse_grads));
-            finite = all_finite(&g_sigma, &g_rgb)
-                && coarse_g.as_ref().map_or(true, |(gs, gc, _)| all_finite(gs, gc));
+            finite = all_finite(&g_sigma, &g_rgb) && coarse_g.as_ref().is_none_or(|(gs, gc, _)| all_finite(gs, gc));
             t_cb = timer.elapsed().as_secs_f64();
             if finite {
                 let tape = r.tape.take();
@@ -263,7 +261,7 @@ pub fn train_photometric_observed(
             mse, smoothed_psnr, rays_per_s, last.samples_per_ray
         ));
         bar.set_position(session.step as u64);
-        if !show_progress && (session.step % (total / 10).max(1) == 0 || session.step == total) {
+        if !show_progress && (session.step.is_multiple_of((total / 10).max(1)) || session.step == total) {
             let faces = last.faces.map_or(String::new(), |f| {
                 format!(", {:.1}% of rays end on a face ({:.1}x the error)", 100.0 * f.ray_fraction, f.error_ratio)
             });
@@ -275,7 +273,7 @@ pub fn train_photometric_observed(
         }
         observer.stage1_step(session, &last)?;
         let every = session.config.train.checkpoint_every;
-        if every > 0 && session.step % every == 0 && session.step < total {
+        if every > 0 && session.step.is_multiple_of(every) && session.step < total {
             session.save_checkpoint()?;
         }
     }

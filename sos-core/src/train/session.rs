@@ -11,9 +11,9 @@ use crate::derived::{derive_settings, DerivedSetting};
 use crate::error::RunError;
 use crate::image::RgbImage;
 use crate::plugin::field::plain;
-use crate::render::memory_budget::MemoryBudget;
 use crate::plugin::{BuildContext, RadianceField};
 use crate::render::contraction::Contraction;
+use crate::render::memory_budget::MemoryBudget;
 use crate::render::occupancy::OccupancyGrid;
 use crate::render::rays::RayBatch;
 use crate::render::renderer::{render_inference, RenderContext, RenderOptions};
@@ -141,7 +141,10 @@ impl Session {
 
     /// Restores the field like [`Session::load_checkpoint`] and returns the checkpoint with
     /// its other sections (e.g. the stage-2 `head`) and the path it was read from.
-    pub fn load_checkpoint_sections(&mut self, path: Option<&Path>) -> Result<(checkpoint::Checkpoint, PathBuf), RunError> {
+    pub fn load_checkpoint_sections(
+        &mut self,
+        path: Option<&Path>,
+    ) -> Result<(checkpoint::Checkpoint, PathBuf), RunError> {
         let path = path.map(Path::to_path_buf).unwrap_or_else(|| self.checkpoint_path());
         let ckpt = checkpoint::load(&path)?;
         let fail = |message: String| RunError::Checkpoint { path: path.clone(), message };
@@ -187,7 +190,7 @@ impl Session {
     /// Periodic occupancy maintenance during training.
     pub fn maintain_occupancy(&mut self) {
         let t = &self.config.train;
-        if self.step >= t.occupancy_warmup && self.step % t.occupancy_every == 0 {
+        if self.step >= t.occupancy_warmup && self.step.is_multiple_of(t.occupancy_every) {
             self.refresh_occupancy(OCCUPANCY_DECAY);
         }
     }

@@ -23,7 +23,7 @@ pub struct BenchArgs {
     /// Profile to run (default: the file's `bench.default_profile`, else everything).
     #[arg(long)]
     profile: Option<String>,
-    /// Result folder (default: the file's `bench.out`/<profile>).
+    /// Result folder (default: the file's `bench.out`/`<profile>`).
     #[arg(long)]
     out: Option<PathBuf>,
     /// Run only slice I of N of the matrix (`0/2`, `1/2`), e.g. one task of a job array.

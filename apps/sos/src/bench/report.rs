@@ -10,8 +10,8 @@ use serde::{Deserialize, Serialize};
 
 use super::plot::{write_chart, Chart, Series};
 use super::record::{RunRecord, Status};
-use super::spread::{self, across_scenes, AcrossScenes};
 use super::runner::BenchMeta;
+use super::spread::{self, across_scenes, AcrossScenes};
 
 /// Mean and standard deviation over seeds.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -8,6 +8,7 @@ use anyhow::Context;
 use sos_core::image::GrayImage;
 use sos_core::metrics::{adjusted_rand_index, binary_iou_gray};
 
+/// `sos compare`: a mask against a reference mask (IoU, mIoU, ARI), optionally written to `out`.
 pub fn run(prediction: &Path, reference: &Path, out: Option<&Path>) -> anyhow::Result<()> {
     let pred = GrayImage::load(prediction).context("reading the predicted mask")?;
     let reference_full = GrayImage::load(reference).context("reading the reference mask")?;

@@ -10,6 +10,7 @@ use sos_core::train::Session;
 
 use super::stage2;
 
+/// `sos eval`: PSNR/SSIM of the held-out views, and segmentation metrics when a head exists.
 pub fn run(config: &Path, checkpoint: Option<&Path>) -> anyhow::Result<()> {
     let mut session = Session::open(config)?;
     let (loaded, ckpt_path) = load_with_head(&mut session, checkpoint)?;

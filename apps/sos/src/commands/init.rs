@@ -5,8 +5,8 @@ use std::path::Path;
 use anyhow::{bail, Context};
 use sos_core::config::{HeadConfig, MaskConfig, RenderConfig, RunConfig, SegmentConfig, TrainConfig};
 use sos_core::plugin::{DatasetConfig, RadianceFieldConfig};
-use sos_core::segment::defaults;
 use sos_core::registry::{find, registrations};
+use sos_core::segment::defaults;
 
 fn kinds<C: ?Sized + 'static>() -> String
 where
@@ -15,6 +15,7 @@ where
     registrations::<C>().iter().map(|r| r.kind).collect::<Vec<_>>().join(", ")
 }
 
+/// `sos init`: writes a complete default configuration.
 pub fn run(path: Option<&Path>, scene: &str, field: &str) -> anyhow::Result<()> {
     let Some(scene_reg) = find::<dyn DatasetConfig>(scene) else {
         bail!("unknown scene kind `{scene}`; registered: {}", kinds::<dyn DatasetConfig>());

@@ -1,6 +1,8 @@
 //! `sos list`: every registered plugin kind per role.
 
-use sos_core::plugin::{ContrastiveLossConfig, DatasetConfig, FeatureExtractorConfig, PairMinerConfig, RadianceFieldConfig};
+use sos_core::plugin::{
+    ContrastiveLossConfig, DatasetConfig, FeatureExtractorConfig, PairMinerConfig, RadianceFieldConfig,
+};
 use sos_core::registry::{registrations, Registration};
 
 fn section<C: ?Sized + 'static>(role: &str, table: &str)
@@ -17,6 +19,7 @@ where
     }
 }
 
+/// `sos list`: every registered kind per role, with its crate.
 pub fn run() -> anyhow::Result<()> {
     section::<dyn DatasetConfig>("datasets", "scene");
     section::<dyn RadianceFieldConfig>("radiance fields", "field");

@@ -12,6 +12,7 @@ use sos_core::train::Session;
 
 use super::stage2;
 
+/// `sos render`: held-out views and the camera path, with masks when a head exists.
 pub fn run(config: &Path, checkpoint: Option<&Path>) -> anyhow::Result<()> {
     let mut session = Session::open(config)?;
     let (loaded, _) = load_with_head(&mut session, checkpoint)?;
@@ -40,8 +41,12 @@ pub fn run(config: &Path, checkpoint: Option<&Path>) -> anyhow::Result<()> {
             // One render gives colour and logits.
             Some(inf) => {
                 let mask = inf.segment(cam, &name)?;
-                let folders =
-                    ViewFolders { masks: "path_masks", overlays: "path_overlays", images: Some("path"), evidence: None };
+                let folders = ViewFolders {
+                    masks: "path_masks",
+                    overlays: "path_overlays",
+                    images: Some("path"),
+                    evidence: None,
+                };
                 write_view_pngs(&mask, &session.run_dir, folders, &name)?;
             }
             None => {

@@ -12,6 +12,7 @@ use sos_core::train::Session;
 
 use super::stage2;
 
+/// `sos segment`: stage 2 and masks from a stage-1 checkpoint.
 pub fn run(config: &Path, checkpoint: Option<&Path>, masks_only: bool, progress: bool) -> anyhow::Result<()> {
     let started = Instant::now();
     let mut session = Session::open(config)?;

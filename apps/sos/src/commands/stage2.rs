@@ -36,8 +36,7 @@ pub fn train(session: &mut Session, mut seg: Segmenter, progress: bool) -> anyho
     let stats = train_segmentation(session, &mut seg, progress)?;
     let seconds = started.elapsed().as_secs_f64();
     eprintln!("stage 2 done: {} steps, last loss {:+.5}, {:.1} s", seg.step, stats.total, seconds);
-    save_with_head(session, &seg.head, HeadMeta { steps: seg.step })
-        .context("saving the segmentation head")?;
+    save_with_head(session, &seg.head, HeadMeta { steps: seg.step }).context("saving the segmentation head")?;
     Ok(Stage2 { seg, stats, seconds })
 }
 
@@ -63,7 +62,13 @@ pub fn masks(
 }
 
 /// The JSON record of stage 2: its settings, timing, last losses and mask metrics.
-pub fn report(session: &Session, steps: usize, seconds: Option<f64>, stats: Option<&SegStepStats>, eval: &MaskEval) -> serde_json::Value {
+pub fn report(
+    session: &Session,
+    steps: usize,
+    seconds: Option<f64>,
+    stats: Option<&SegStepStats>,
+    eval: &MaskEval,
+) -> serde_json::Value {
     serde_json::json!({
         "steps": steps,
         "config": {
@@ -80,8 +85,7 @@ pub fn report(session: &Session, steps: usize, seconds: Option<f64>, stats: Opti
 
 /// The config's seeds: the run's and, where the scene kind has one, the scene's.
 pub fn seeds(session: &Session) -> serde_json::Value {
-    let scene_seed = toml::Value::try_from(&session.config.scene)
-        .ok()
-        .and_then(|v| v.get("seed").and_then(|s| s.as_integer()));
+    let scene_seed =
+        toml::Value::try_from(&session.config.scene).ok().and_then(|v| v.get("seed").and_then(|s| s.as_integer()));
     serde_json::json!({ "run": session.config.seed, "scene": scene_seed })
 }

@@ -13,6 +13,7 @@ use sos_core::train::Session;
 
 use super::stage2;
 
+/// `sos train`: stage 1, then stage 2 and masks (or an evaluation without stage 2).
 pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
     let started = Instant::now();
     let mut session = Session::open(config)?;
@@ -58,7 +59,11 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
             report["timing"]["stage1_eval_seconds"] = eval_started.elapsed().as_secs_f64().into();
             print_image_eval(&eval);
             record_warnings(&stats, &eval, &mut report);
-            println!("render speed {:.0} rays/s; outputs in {}", eval.render_rays_per_second, session.run_dir.display());
+            println!(
+                "render speed {:.0} rays/s; outputs in {}",
+                eval.render_rays_per_second,
+                session.run_dir.display()
+            );
             report["test"] = serde_json::to_value(&eval)?;
         }
         Some(seg) => {

@@ -69,7 +69,7 @@ impl RandomWorld {
                 continue;
             }
             if let Some(h) = p.shape.hit(o, d) {
-                if best.map_or(true, |(b, _)| h.0 < b.0) {
+                if best.is_none_or(|(b, _)| h.0 < b.0) {
                     best = Some((h, i));
                 }
             }
