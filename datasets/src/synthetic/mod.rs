@@ -468,15 +468,10 @@ mod tests {
     }
 
     #[test]
-    fn full_size_generation_is_fast() {
-        let start = std::time::Instant::now();
+    fn full_size_generation_splits_views_and_frames_the_object() {
         let scene = generate(&SyntheticConfig::default());
-        let secs = start.elapsed().as_secs_f32();
-        println!("generated 40 views of 400x300 in {secs:.2} s");
         assert_eq!(scene.views.len(), 40);
         assert_eq!((scene.train.len(), scene.test.len()), (35, 5));
-        // Generous bound: a shared 2-core machine under load.
-        assert!(secs < 60.0, "generation took {secs} s");
         for &i in &scene.test {
             let f = fg_fraction(&scene.views[i]);
             assert!((0.05..=0.4).contains(&f), "view {i}: foreground fraction {f}");
