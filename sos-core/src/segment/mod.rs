@@ -6,6 +6,7 @@ pub mod cleanup;
 pub mod defaults;
 pub mod diagnostics;
 pub mod evaluate;
+pub mod frozen_render;
 pub mod head;
 pub mod head_pass;
 pub mod infer;

@@ -4,18 +4,17 @@
 use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 
 use crate::config::LossEntry;
 use crate::error::{BuildError, RunError};
 use crate::image::RgbImage;
 use crate::plugin::{ContrastiveLoss, PairMiner, PatchBatch};
 use crate::render::composite::{RayColor, RayGrad, EMPTY_RAY_DEPTH};
-use crate::render::rays::RayBatch;
-use crate::render::renderer::{render, render_with_seg_input, FrozenBuffers, Rendered};
 use crate::segment::defaults;
+use crate::segment::frozen_render::FrozenRender;
 use crate::segment::head::SegHead;
-use crate::segment::head_pass::{self, HeadSamples};
+use crate::segment::head_pass::HeadSamples;
 use crate::segment::patches::{patch_rays, Patch, PatchSampler};
 use crate::segment::teacher::{captured_patch, Teacher};
 use crate::train::observer::{TrainObserver, Unobserved};
@@ -54,14 +53,7 @@ pub struct Segmenter {
     /// Stage-2 steps completed.
     pub step: usize,
     /// Buffers reused from step to step and from call to call of [`train_segmentation`].
-    reused: ReusedBuffers,
-}
-
-/// The gigabytes a stage-2 step fills (the head's tapes, the frozen render's state and
-/// segmentation input), kept so that they are page-faulted in once rather than every step.
-struct ReusedBuffers {
-    tapes: head_pass::HeadTapes,
-    render: FrozenBuffers,
+    frozen: FrozenRender,
 }
 
 /// Loss values of one stage-2 step.
@@ -124,10 +116,7 @@ impl Segmenter {
             losses,
             sampler,
             step: 0,
-            reused: ReusedBuffers {
-                tapes: head_pass::HeadTapes::with_budget(session.render_options(false).memory.head_tapes()),
-                render: FrozenBuffers::default(),
-            },
+            frozen: FrozenRender::new(session.render_options(false).memory),
         })
     }
 }
@@ -181,13 +170,13 @@ pub fn train_segmentation_observed(
         }
         let timer = Instant::now();
         let rays = patch_rays(&session.scene, &patches);
-        let mut r = render_rays(session, &rays, joint, true, &mut seg.reused.render, &mut rng);
+        let mut r = seg.frozen.render(session, &rays, joint, true, &mut rng);
 
         // Head on the surviving samples, then logits composited with the field's weights.
         let n_samples = r.samples.len();
         let t_field = timer.elapsed().as_secs_f64();
         let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
-        let sample_logits = head_pass::forward(session.field.as_ref(), &seg.head, head_samples, &mut seg.reused.tapes);
+        let sample_logits = seg.frozen.head_forward(session, &seg.head, head_samples);
         // Ray-major logits, as inference composites them, laid out per patch channel-first
         // for the losses.
         let ray_logits = r.composite_values(&sample_logits, d_seg, |_| true);
@@ -252,7 +241,7 @@ pub fn train_segmentation_observed(
             if bad_steps >= MAX_BAD_STEPS {
                 return Err(RunError::Diverged(format!("{MAX_BAD_STEPS} non-finite stage-2 steps in a row")));
             }
-            seg.reused.render.recycle(&mut r);
+            seg.frozen.recycle(&mut r);
             seg.step += 1;
             continue;
         }
@@ -267,7 +256,7 @@ pub fn train_segmentation_observed(
             }
         }
         let grad_sample = r.composite_values_backward(&ray_grad_extra, d_seg);
-        head_pass::backward(session.field.as_ref(), &mut seg.head, head_samples, &grad_sample, &seg.reused.tapes);
+        seg.frozen.head_backward(session, &mut seg.head, head_samples, &grad_sample);
         let lr_factor = cfg.final_lr_factor.powf(seg.step as f32 / cfg.steps.max(1) as f32);
         seg.head.step(lr_factor);
         if std::env::var("SOS_PROFILE").is_ok() {
@@ -300,7 +289,7 @@ pub fn train_segmentation_observed(
             session.field.backward(&r.samples.positions, &r.samples.directions, tape, &g_sigma, &g_rgb);
             session.field.step(lr_factor * session.config.train.final_lr_factor);
         }
-        seg.reused.render.recycle(&mut r);
+        seg.frozen.recycle(&mut r);
         seg.step += 1;
         last = stats;
         observer.stage2_step(session, seg, &last)?;
@@ -330,32 +319,6 @@ pub fn train_segmentation_observed(
     Ok(last)
 }
 
-/// Renders patch rays as a stage-2 step does. With the density frozen (`joint = false`),
-/// samples whose compositing weight is below `segment.weight_threshold` are skipped (they
-/// cannot matter), and with `keep_seg_input` the render keeps the field's segmentation input at
-/// the rest when it fits its share of the memory budget, so the head needs no second pass of
-/// the field.
-fn render_rays(
-    session: &Session,
-    rays: &RayBatch,
-    joint: bool,
-    keep_seg_input: bool,
-    buffers: &mut FrozenBuffers,
-    rng: &mut impl Rng,
-) -> Rendered {
-    let mut options = session.render_options(false);
-    let (field, ctx) = (session.field.as_ref(), session.render_context());
-    let mut r = if joint {
-        render(field, ctx, rays, options, true, rng)
-    } else {
-        options.min_weight = session.config.segment.weight_threshold;
-        let seg_budget = if keep_seg_input { options.memory.seg_input() } else { 0 };
-        render_with_seg_input(field, ctx, rays, options, seg_budget, buffers, rng)
-    };
-    r.composite();
-    r
-}
-
 /// Rendered colours of `p x p` patches, patch after patch, as images.
 fn patch_images(colors: &[RayColor], p: usize) -> Vec<RgbImage> {
     colors
@@ -376,7 +339,7 @@ pub fn render_patches(session: &Session, patches: &[Patch]) -> Vec<RgbImage> {
     let rays = patch_rays(&session.scene, patches);
     // Evaluation marching is not stratified: the generator does not change the result.
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed);
-    let r = render_rays(session, &rays, false, false, &mut FrozenBuffers::default(), &mut rng);
+    let r = FrozenRender::new(session.render_options(false).memory).render(session, &rays, false, false, &mut rng);
     patch_images(&r.colors, session.config.segment.patch_size as usize)
 }
 
