@@ -29,3 +29,14 @@ echo "weights: $PTH ($(stat -c %s "$COPY") bytes, copied to $COPY)"
 
 echo "== efficientnet-lite: parity with the published model, and the forward time of 8x224x224"
 SOS_EFFICIENTNET_WEIGHTS="$PWD/$COPY" cargo test --release -p sos-backbones --test efficientnet_lite -- --nocapture
+
+echo "== efficientnet-lite: the conformance suite with the weights where the default config looks"
+CONFORMANCE_DIR=target/conformance
+mkdir -p "$CONFORMANCE_DIR/weights"
+cp "$COPY" "$CONFORMANCE_DIR/weights/efficientnet-lite0-57934424.pth"
+SOS_CONFORMANCE_CONFIG_DIR="$PWD/$CONFORMANCE_DIR" cargo test -p sos --test conformance -- --nocapture 2>&1 \
+  | tee target/conformance/log.txt | grep -E "^conformance|test result"
+if grep -q "extractor \`efficientnet-lite\` not checkable" target/conformance/log.txt; then
+  echo "efficientnet-lite: the conformance suite did not find the weights" >&2
+  exit 1
+fi

@@ -475,6 +475,13 @@ fn check_two_stage_run(kind: &str, config: &dyn RadianceFieldConfig, hide_capabi
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Where default configs' relative resource paths (teacher weights) resolve: the folder named
+/// by `SOS_CONFORMANCE_CONFIG_DIR`, so a CI step that has fetched weights can check those
+/// teachers too, or the working directory.
+fn resource_context() -> BuildContext {
+    std::env::var_os("SOS_CONFORMANCE_CONFIG_DIR").map(BuildContext::new).unwrap_or_default()
+}
+
 /// Builds a kind's default config, or reports on stderr that a resource it needs is absent.
 fn build_or_report<T>(role: &str, kind: &str, built: Result<T, BuildError>) -> Option<T> {
     match built {
@@ -494,7 +501,7 @@ pub fn check_extractor_kind(kind: &str) {
         find::<dyn FeatureExtractorConfig>(kind).unwrap_or_else(|| panic!("no extractor `{kind}` is registered"));
     let mut config = (registration.default_config)();
     config.derive_for(&crate::derived::PatchFacts { patch_size: 64, stride: 6 });
-    let Some(extractor) = build_or_report("extractor", kind, config.build(&BuildContext::default())) else {
+    let Some(extractor) = build_or_report("extractor", kind, config.build(&resource_context())) else {
         return;
     };
     let images: Vec<RgbImage> = (0..2)
