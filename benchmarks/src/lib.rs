@@ -2,12 +2,12 @@
 
 /// The same allocator as the `sos` binary, so benchmarks time what users run.
 #[global_allocator]
-static ALLOCATOR: sos_core::train::memory::MiMalloc = sos_core::train::memory::MiMalloc;
+static ALLOCATOR: sos::allocator::MiMalloc = sos::allocator::MiMalloc;
 
 /// Tunes the allocator as `sos` does (call first in a timing binary's `main`; calling it also
 /// links this crate, and with it the allocator above).
 pub fn allocate_like_sos() {
-    sos_core::train::memory::keep_freed_memory();
+    sos::allocator::keep_freed_memory();
 }
 
 /// CPU seconds (user + system, all threads) this process has used so far, from

@@ -94,7 +94,7 @@ enum Command {
 /// Parses the command line and runs the command; errors print their causes and give exit
 /// code 2.
 pub fn run() -> ExitCode {
-    sos_core::train::memory::keep_freed_memory();
+    crate::allocator::keep_freed_memory();
     let cli = Cli::parse();
     let progress = !cli.quiet && std::io::stderr().is_terminal();
     let result = match cli.command {

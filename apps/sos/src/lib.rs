@@ -3,6 +3,7 @@
 //! plugin linked into the calling program. Every failure prints the chain of causes (file,
 //! key, what to do) and exits with code 2.
 
+pub mod allocator;
 pub mod bench;
 mod cli;
 pub mod commands;

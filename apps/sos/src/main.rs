@@ -2,9 +2,9 @@
 //! crate outside this workspace gets the same binary by linking its plugins and calling
 //! [`sos::run`].
 
-/// An allocator that keeps freed pages for the next training step (see `train::memory`).
+/// An allocator that keeps freed pages for the next training step (see `sos::allocator`).
 #[global_allocator]
-static ALLOCATOR: sos_core::train::memory::MiMalloc = sos_core::train::memory::MiMalloc;
+static ALLOCATOR: sos::allocator::MiMalloc = sos::allocator::MiMalloc;
 
 fn main() -> std::process::ExitCode {
     sos::run()

@@ -5,7 +5,7 @@ use sos_plugins as _; // the built-in scenes, fields, teachers, miners and losse
 
 /// The allocator of the `sos` binary: it keeps freed pages for the next step's tensors.
 #[global_allocator]
-static ALLOCATOR: sos_core::train::memory::MiMalloc = sos_core::train::memory::MiMalloc;
+static ALLOCATOR: sos::allocator::MiMalloc = sos::allocator::MiMalloc;
 
 fn main() -> std::process::ExitCode {
     sos::run()

@@ -3,7 +3,6 @@
 pub mod checkpoint;
 pub mod evaluate;
 pub mod face_pileup;
-pub mod memory;
 pub mod observer;
 pub mod photometric;
 pub mod progress;

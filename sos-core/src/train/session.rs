@@ -66,7 +66,6 @@ impl Session {
 
     /// Builds a session from an already parsed config.
     pub fn from_config(mut config: RunConfig, config_dir: &Path) -> Result<Session, RunError> {
-        crate::train::memory::keep_freed_memory();
         let scene = config.scene.open(config_dir)?;
         scene.validate().map_err(|message| crate::plugin::dataset::DatasetError::Invalid {
             path: config_dir.to_path_buf(),

@@ -4,8 +4,10 @@
 //! those pages in again and zero them: measured on the `nerf` stage-1 step that doubled its
 //! forward time, and in stage 2 it was a third of the run in system time on the 2-core machine.
 //!
-//! The binaries install mimalloc ([`MiMalloc`]) and [`keep_freed_memory`] turns its purging
-//! off; where the system allocator is in use (tests, library users) the same call raises glibc's
+//! The allocator is the program's choice, not the library's: `sos-core` never touches it. The
+//! binaries install mimalloc ([`MiMalloc`]) and [`crate::run`] calls [`keep_freed_memory`]
+//! first, which turns its purging off; where the system allocator serves the process (a program
+//! that embeds the library without installing mimalloc) the same call raises glibc's
 //! thresholds instead. Peak memory is unchanged either way; memory is only not returned before
 //! the process ends.
 
