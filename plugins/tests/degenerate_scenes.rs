@@ -71,10 +71,10 @@ struct Outcome {
 /// Stage 1, its evaluation, stage 2 and mask inference, as `sos train` runs them.
 fn two_stages(session: &mut Session) -> Result<Outcome, RunError> {
     let result = (|| {
-        train_photometric(session, false)?;
+        train_photometric(session)?;
         let stage1 = evaluate_views(session, false)?;
         let mut seg = Segmenter::build(session)?;
-        train_segmentation(session, &mut seg, false)?;
+        train_segmentation(session, &mut seg)?;
         let inference = MaskInference::new(session, &seg.head, Some(seg.teacher.extractor()))?;
         let masks = evaluate_masks(session, &inference, false)?;
         let test = ImageEval::from_report(&masks.image, 1, masks.seconds);

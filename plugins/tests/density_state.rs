@@ -132,7 +132,7 @@ fn stage2(field: &str, trained: &[u8], hide_state: bool) -> (Vec<u8>, usize) {
     let from_state = Arc::new(AtomicUsize::new(0));
     s.field = Box::new(Probe { inner: donor.field, hide_state, from_state: from_state.clone() });
     let mut seg = Segmenter::build(&s).unwrap();
-    train_segmentation(&mut s, &mut seg, false).unwrap();
+    train_segmentation(&mut s, &mut seg).unwrap();
     std::fs::remove_dir_all(&s.run_dir).ok();
     (seg.head.to_bytes(), from_state.load(Ordering::Relaxed))
 }
@@ -141,7 +141,7 @@ fn stage2(field: &str, trained: &[u8], hide_state: bool) -> (Vec<u8>, usize) {
 fn stage_two_trains_the_same_head_with_the_density_state() {
     for field in ["nerf", "nerf++"] {
         let mut s = session(field, "stage1");
-        train_photometric(&mut s, false).unwrap();
+        train_photometric(&mut s).unwrap();
         let trained = s.field.save_state();
         std::fs::remove_dir_all(&s.run_dir).ok();
         let (kept, coloured) = stage2(field, &trained, false);

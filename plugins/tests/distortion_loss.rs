@@ -10,7 +10,7 @@ use sos_plugins as _;
 fn trained_density(weight: f32, tag: &str) -> (f64, Vec<f32>) {
     let mut s = common::tiny_session("voxel-grid", "object-centric", "", 40, tag);
     s.config.train.distortion_weight = weight;
-    let stats = train_photometric(&mut s, false).unwrap();
+    let stats = train_photometric(&mut s).unwrap();
     let probes: Vec<[f32; 3]> =
         (0..64).map(|i| [0.05 * (i % 8) as f32 - 0.2, 0.5 + 0.05 * (i / 8) as f32, 0.0]).collect();
     let mut density = vec![0.0; probes.len()];

@@ -146,7 +146,7 @@ fn bad_steps_are_skipped_and_training_continues() {
         let before = s.field.save_state();
         // Steps 0..=3 are poisoned (begin_step of step k > 0 consumes one), then 6 clean ones.
         let applied = poison(&mut s, inject, 4);
-        let stats = train_photometric(&mut s, false).expect("a few bad steps do not stop the run");
+        let stats = train_photometric(&mut s).expect("a few bad steps do not stop the run");
         let n = applied.load(Ordering::Relaxed);
         assert_eq!(n, 6, "{field}: only the clean steps may update the field (applied {n})");
         assert!(stats.mse.is_finite());
@@ -160,7 +160,7 @@ fn a_run_of_bad_steps_stops_with_a_clear_message() {
     let mut s = session(40, "voxel-grid");
     let before = s.field.save_state();
     let applied = poison(&mut s, Inject::Gradient, usize::MAX);
-    match train_photometric(&mut s, false) {
+    match train_photometric(&mut s) {
         Err(RunError::Diverged(message)) => {
             assert!(message.contains("20 stage-1 steps in a row"), "{message}");
             assert!(message.contains("learning rate"), "the message suggests a fix: {message}");
@@ -174,7 +174,7 @@ fn a_run_of_bad_steps_stops_with_a_clear_message() {
 #[test]
 fn stage_two_skips_non_finite_steps_then_stops() {
     let mut s = session(2, "voxel-grid");
-    train_photometric(&mut s, false).unwrap();
+    train_photometric(&mut s).unwrap();
     // NaN colours reach the teacher through the rendered patches: a non-finite loss.
     poison(&mut s, Inject::Colour, usize::MAX);
     let mut seg = Segmenter::build(&s).unwrap();
@@ -182,7 +182,7 @@ fn stage_two_skips_non_finite_steps_then_stops() {
     s.config.segment.steps = 25;
     // Keep every sample, so the poisoned colours are composited (0 · NaN = NaN).
     s.config.segment.weight_threshold = 0.0;
-    match train_segmentation(&mut s, &mut seg, false) {
+    match train_segmentation(&mut s, &mut seg) {
         Err(RunError::Diverged(message)) => assert!(message.contains("non-finite"), "{message}"),
         other => panic!("expected divergence, got {:?}", other.map(|s| s.total)),
     }

@@ -26,9 +26,9 @@ fn run(field: &str, threads: usize) -> (Vec<u8>, Vec<u8>) {
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
     pool.install(|| {
         let mut s = session(field, threads);
-        train_photometric(&mut s, false).unwrap();
+        train_photometric(&mut s).unwrap();
         let mut seg = Segmenter::build(&s).unwrap();
-        train_segmentation(&mut s, &mut seg, false).unwrap();
+        train_segmentation(&mut s, &mut seg).unwrap();
         std::fs::remove_dir_all(&s.run_dir).ok();
         (s.field.save_state(), seg.head.to_bytes())
     })

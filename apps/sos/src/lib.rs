@@ -7,6 +7,7 @@ pub mod allocator;
 pub mod bench;
 mod cli;
 pub mod commands;
+pub mod console;
 
 pub use cli::run;
 

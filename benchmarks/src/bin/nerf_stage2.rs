@@ -169,12 +169,12 @@ fn speed(checkpoint: &Path, steps: usize) {
         let mut session = open(mode, 1, checkpoint);
         let mut seg = Segmenter::build(&session).expect("stage 2 builds");
         session.config.segment.steps = 1;
-        train_segmentation(&mut session, &mut seg, false).expect("warm-up step");
+        train_segmentation(&mut session, &mut seg).expect("warm-up step");
         let (mut wall, mut cpu, mut per_ray) = (Vec::new(), Vec::new(), 0.0);
         for _ in 0..steps {
             session.config.segment.steps = seg.step + 1;
             let (t, c) = (Instant::now(), cpu_seconds());
-            let stats = train_segmentation(&mut session, &mut seg, false).expect("stage-2 step");
+            let stats = train_segmentation(&mut session, &mut seg).expect("stage-2 step");
             wall.push(t.elapsed().as_secs_f64());
             cpu.push(cpu_seconds() - c);
             per_ray = stats.samples_per_ray;
@@ -272,7 +272,7 @@ fn quality(checkpoint: &Path, steps: usize) {
             session.config.seed = seed;
             let mut seg = Segmenter::build(&session).expect("stage 2 builds");
             let t = Instant::now();
-            train_segmentation(&mut session, &mut seg, false).expect("stage 2 trains");
+            train_segmentation(&mut session, &mut seg).expect("stage 2 trains");
             let train_s = t.elapsed().as_secs_f64();
             let inference = MaskInference::new(&session, &seg.head, Some(seg.teacher.extractor())).expect("inference");
             let eval = evaluate_masks(&session, &inference, false).expect("masks");
@@ -338,7 +338,7 @@ fn inference_skips(checkpoint: &Path, steps: usize) {
     ];
     let mut session = open(&skips, steps, checkpoint);
     let mut seg = Segmenter::build(&session).expect("stage 2 builds");
-    train_segmentation(&mut session, &mut seg, false).expect("stage 2 trains");
+    train_segmentation(&mut session, &mut seg).expect("stage 2 trains");
     println!(
         "nerf_stage2 inference: one head ({steps} steps with every skip, seed 0), masks rendered under each setting"
     );

@@ -35,7 +35,7 @@ fn main() {
     let dir = std::env::temp_dir().join("sos-render-speed");
     let mut session = Session::from_config(config, &dir).expect("synthetic scene builds");
     let started = Instant::now();
-    let stats = train_photometric(&mut session, false).expect("training runs");
+    let stats = train_photometric(&mut session).expect("training runs");
     println!(
         "stage 1: {steps} steps in {:.1} s (last batch PSNR {:.2} dB)",
         started.elapsed().as_secs_f64(),

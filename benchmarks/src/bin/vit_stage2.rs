@@ -131,7 +131,7 @@ struct Timing {
 fn time_steps(session: &mut Session, seg: &mut Segmenter, steps: usize) -> Timing {
     session.config.segment.steps = steps;
     let (t, c) = (Instant::now(), process_cpu_seconds().unwrap_or(f64::NAN));
-    train_segmentation(session, seg, false).expect("stage 2 runs");
+    train_segmentation(session, seg).expect("stage 2 runs");
     let n = steps as f64;
     Timing {
         wall: t.elapsed().as_secs_f64() / n,
@@ -211,7 +211,7 @@ fn miou(session: &mut Session, source: TeacherSource, steps: usize) -> (f64, f64
     session.config.segment.steps = steps;
     let mut seg = Segmenter::build(session).expect("stage 2 builds");
     let t = Instant::now();
-    train_segmentation(session, &mut seg, false).expect("stage 2 runs");
+    train_segmentation(session, &mut seg).expect("stage 2 runs");
     let seconds = t.elapsed().as_secs_f64();
     let inference = MaskInference::new(session, &seg.head, None).expect("mask inference");
     let eval = evaluate_masks(session, &inference, false).expect("evaluation");
@@ -242,7 +242,7 @@ fn main() {
     let dir = std::env::temp_dir().join(format!("sos-vit-stage2-{}", std::process::id()));
     let mut session = Session::from_config(config, &dir).expect("synthetic scene builds");
     let t = Instant::now();
-    let stats = train_photometric(&mut session, false).expect("stage 1 runs");
+    let stats = train_photometric(&mut session).expect("stage 1 runs");
     println!("stage 1: {stage1} steps in {:.1} s (last batch PSNR {:.2} dB)", t.elapsed().as_secs_f64(), stats.psnr);
 
     println!(

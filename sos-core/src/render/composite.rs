@@ -10,6 +10,11 @@
 /// sentinel; the geometry loss clips it away).
 pub const EMPTY_RAY_DEPTH: f32 = 1e10;
 
+/// Whether a rendered depth is a real hit: finite and well below [`EMPTY_RAY_DEPTH`].
+pub fn is_hit(depth: f32) -> bool {
+    depth.is_finite() && depth < EMPTY_RAY_DEPTH * 0.5
+}
+
 /// Opacity at or below which a ray counts as empty.
 pub const EMPTY_RAY_ACC: f32 = 1e-10;
 

@@ -79,6 +79,28 @@ pub struct Rendered {
     /// The field's segmentation input at each sample, `[n, seg_input_dim]`, when rendered by
     /// [`render_with_seg_input`] within its budget; empty otherwise.
     pub seg_input: Vec<f32>,
+    /// Where the render's time went.
+    pub timing: RenderTiming,
+}
+
+/// Seconds spent in each phase of one render and the sample counts behind them, for a caller's
+/// profile (the renderer itself prints nothing).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct RenderTiming {
+    /// Placing candidate samples along the rays (and the proposal pass of a hierarchical field).
+    pub march: f64,
+    /// The density-only pass that finds where rays terminate (0 when nothing is pruned).
+    pub density: f64,
+    /// Dropping the samples that pass decided to skip.
+    pub filter: f64,
+    /// The field's full pass over the kept samples.
+    pub forward: f64,
+    /// Candidates placed.
+    pub candidates: usize,
+    /// Candidates whose density was evaluated by the density pass.
+    pub evaluated: usize,
+    /// Samples kept for the full pass.
+    pub kept: usize,
 }
 
 /// Marches, prunes and evaluates the field. Call [`Rendered::composite`] next.
@@ -245,14 +267,14 @@ fn render_impl(
         // Nothing to decide from density alone: skip the density pass (for network fields it
         // costs nearly as much as the full pass).
         let (density, rgb, tape, seg_input) = evaluate(field, &candidates, record, seg_limits, buffers);
-        if std::env::var("SOS_PROFILE").is_ok() {
-            eprintln!(
-                "render: march {:.3} forward {:.3} (samples {})",
-                t_march,
-                timer.elapsed().as_secs_f64() - t_march,
-                n_candidates
-            );
-        }
+        let timing = RenderTiming {
+            march: t_march,
+            forward: timer.elapsed().as_secs_f64() - t_march,
+            candidates: n_candidates,
+            evaluated: n_candidates,
+            kept: n_candidates,
+            ..RenderTiming::default()
+        };
         return Rendered {
             samples: candidates,
             density,
@@ -263,6 +285,7 @@ fn render_impl(
             n_candidates,
             coarse,
             seg_input,
+            timing,
         };
     }
 
@@ -287,19 +310,27 @@ fn render_impl(
         }
         None => evaluate(field, &samples, record, seg_limits, buffers),
     };
-    if std::env::var("SOS_PROFILE").is_ok() {
-        eprintln!(
-            "render: march {:.3} density {:.3} filter {:.3} forward {:.3} (candidates {}, evaluated {}, kept {})",
-            t_march,
-            t_density - t_march,
-            t_filter - t_density,
-            timer.elapsed().as_secs_f64() - t_filter,
-            n_candidates,
-            pass.evaluated,
-            samples.len()
-        );
+    let timing = RenderTiming {
+        march: t_march,
+        density: t_density - t_march,
+        filter: t_filter - t_density,
+        forward: timer.elapsed().as_secs_f64() - t_filter,
+        candidates: n_candidates,
+        evaluated: pass.evaluated,
+        kept: samples.len(),
+    };
+    Rendered {
+        samples,
+        density,
+        rgb,
+        weights: Vec::new(),
+        colors: Vec::new(),
+        tape,
+        n_candidates,
+        coarse,
+        seg_input,
+        timing,
     }
-    Rendered { samples, density, rgb, weights: Vec::new(), colors: Vec::new(), tape, n_candidates, coarse, seg_input }
 }
 
 /// The proposal pass of a [`Hierarchical`] field: returns the fine candidates (proposal and
@@ -345,6 +376,7 @@ fn propose(
             n_candidates: n,
             coarse: None,
             seg_input: Vec::new(),
+            timing: RenderTiming::default(),
         };
         r.composite();
         let w = r.weights.clone();

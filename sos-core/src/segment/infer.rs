@@ -27,7 +27,7 @@ use crate::error::{ConfigError, RunError};
 use crate::image::{GrayImage, RgbImage};
 use crate::kmeans::{kmeans, KMeansConfig, KMeansResult};
 use crate::plugin::FeatureExtractor;
-use crate::render::composite::EMPTY_RAY_DEPTH;
+use crate::render::composite::is_hit;
 use crate::render::rays::RayBatch;
 use crate::render::renderer::{render_inference, ExtraChannels};
 use crate::scene::Scene;
@@ -99,11 +99,6 @@ pub fn render_logits(session: &Session, head: &SegHead, camera: &Camera) -> Rend
         points.push(is_hit(d).then(|| axpy(rays.origins[i], d, rays.directions[i])));
     }
     RenderedLogits { rgb, depth, logits, channels: d, points }
-}
-
-/// Whether a rendered depth is a real hit rather than the empty-ray sentinel.
-fn is_hit(depth: f32) -> bool {
-    depth.is_finite() && depth < EMPTY_RAY_DEPTH * 0.5
 }
 
 /// Per-row softmax of `[n, d]` values (numerically stable).
@@ -550,6 +545,7 @@ fn no_saliency(session: &Session, why: &str) -> RunError {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::render::composite::EMPTY_RAY_DEPTH;
 
     #[test]
     fn saliency_picks_the_more_salient_cluster() {

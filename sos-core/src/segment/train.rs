@@ -3,22 +3,22 @@
 
 use std::time::Instant;
 
-use indicatif::{ProgressBar, ProgressStyle};
 use rand::SeedableRng;
 
 use crate::config::LossEntry;
 use crate::error::{BuildError, RunError};
 use crate::image::RgbImage;
-use crate::plugin::{ContrastiveLoss, PairMiner, PatchBatch};
-use crate::render::composite::{RayColor, RayGrad, EMPTY_RAY_DEPTH};
+use crate::plugin::{ContrastiveLoss, FeatureMap, PairMiner, PatchBatch};
+use crate::render::composite::{is_hit, RayColor, RayGrad};
+use crate::render::rays::RayBatch;
+use crate::render::renderer::{RenderTiming, Rendered};
 use crate::segment::defaults;
 use crate::segment::frozen_render::FrozenRender;
 use crate::segment::head::SegHead;
 use crate::segment::head_pass::HeadSamples;
 use crate::segment::patches::{patch_rays, Patch, PatchSampler};
 use crate::segment::teacher::{captured_patch, Teacher};
-use crate::train::observer::{TrainObserver, Unobserved};
-use crate::train::progress::log_line;
+use crate::train::observer::{Severity, Stage, TrainObserver, Unobserved};
 use crate::train::session::{kind_of, Session};
 
 /// Consecutive non-finite losses after which stage 2 stops.
@@ -65,6 +65,26 @@ pub struct SegStepStats {
     pub terms: Vec<(String, f64)>,
     /// Head evaluations per ray after weight thresholding.
     pub samples_per_ray: f64,
+    /// Where the step's time went.
+    #[serde(skip)]
+    pub timing: Stage2Timing,
+}
+
+/// Seconds spent in each phase of one stage-2 step.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Stage2Timing {
+    /// The frozen field's render of the patches.
+    pub render: RenderTiming,
+    /// Rendering the patches, start to end (the render above and its compositing).
+    pub field: f64,
+    /// The head's forward pass and the compositing of its logits.
+    pub head: f64,
+    /// The teacher's features of the patches.
+    pub teacher: f64,
+    /// The losses and their gradients.
+    pub losses: f64,
+    /// Back through the compositing and the head, and the optimiser step.
+    pub backward: f64,
 }
 
 fn missing(role: &str, kind: &str, table: &str) -> RunError {
@@ -121,118 +141,62 @@ impl Segmenter {
     }
 }
 
-/// Replaces the empty-ray depth sentinel by the largest real depth of the batch (the
-/// reference's depth clip does the same for its sentinel).
+/// Replaces the empty-ray depth sentinel (and any non-finite depth) by the largest real depth
+/// of the batch (the reference's depth clip does the same for its sentinel).
 pub fn fill_empty_depths(depth: &mut [f32]) {
-    let limit = EMPTY_RAY_DEPTH * 0.5;
-    let max_real = depth.iter().copied().filter(|&d| d < limit).fold(f32::NEG_INFINITY, f32::max);
+    let max_real = depth.iter().copied().filter(|&d| is_hit(d)).fold(f32::NEG_INFINITY, f32::max);
     let fill = if max_real.is_finite() { max_real } else { 0.0 };
-    for d in depth.iter_mut().filter(|d| **d >= limit) {
+    for d in depth.iter_mut().filter(|d| !is_hit(**d)) {
         *d = fill;
     }
 }
 
-/// Runs stage 2 for `segment.steps` steps.
-pub fn train_segmentation(
-    session: &mut Session,
-    seg: &mut Segmenter,
-    show_progress: bool,
-) -> Result<SegStepStats, RunError> {
-    train_segmentation_observed(session, seg, show_progress, &mut Unobserved)
+/// Runs stage 2 for `segment.steps` steps; messages are dropped (see
+/// [`train_segmentation_observed`]).
+pub fn train_segmentation(session: &mut Session, seg: &mut Segmenter) -> Result<SegStepStats, RunError> {
+    train_segmentation_observed(session, seg, &mut Unobserved)
 }
 
-/// [`train_segmentation`], calling `observer` after every step.
+/// [`train_segmentation`], telling `observer` of the stage, its messages and every step.
 pub fn train_segmentation_observed(
     session: &mut Session,
     seg: &mut Segmenter,
-    show_progress: bool,
     observer: &mut dyn TrainObserver,
 ) -> Result<SegStepStats, RunError> {
     let cfg = session.config.segment.clone();
     let joint = cfg.photometric_weight > 0.0;
-    let n_patches = cfg.patches;
-    let p = cfg.patch_size as usize;
-    let rays_per_patch = p * p;
-    let d_seg = seg.head.outputs();
+    let layout = PatchLayout { side: cfg.patch_size as usize };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed.wrapping_add(0x5E6 + seg.step as u64));
-    let bar = if show_progress { ProgressBar::new(cfg.steps as u64) } else { ProgressBar::hidden() };
-    bar.set_style(
-        ProgressStyle::with_template("stage 2 {bar:30} {pos}/{len} {msg} [{elapsed_precise}<{eta_precise}]")
-            .expect("valid template"),
-    );
-    let started = Instant::now();
+    observer.stage_begins(Stage::Segmentation, seg.step, cfg.steps);
     let mut last = SegStepStats::default();
     let mut bad_steps = 0;
     while seg.step < cfg.steps {
-        let patches = seg.sampler.next_batch(&session.scene, n_patches);
+        let patches = seg.sampler.next_batch(&session.scene, cfg.patches);
         for notice in seg.sampler.take_notices() {
-            log_line(&bar, format!("notice: {notice}"));
+            observer.message(Severity::Notice, &notice);
         }
         let timer = Instant::now();
         let rays = patch_rays(&session.scene, &patches);
         let mut r = seg.frozen.render(session, &rays, joint, true, &mut rng);
-
-        // Head on the surviving samples, then logits composited with the field's weights.
-        let n_samples = r.samples.len();
         let t_field = timer.elapsed().as_secs_f64();
-        let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
-        let sample_logits = seg.frozen.head_forward(session, &seg.head, head_samples);
-        // Ray-major logits, as inference composites them, laid out per patch channel-first
-        // for the losses.
-        let ray_logits = r.composite_values(&sample_logits, d_seg, |_| true);
-        let mut logits = vec![0.0f32; n_patches * d_seg * rays_per_patch];
-        for (ray, l) in ray_logits.chunks_exact(d_seg).enumerate() {
-            let (patch, pix) = (ray / rays_per_patch, ray % rays_per_patch);
-            for (c, &v) in l.iter().enumerate() {
-                logits[(patch * d_seg + c) * rays_per_patch + pix] = v;
-            }
-        }
-
-        // Depth-derived points and rendered patch images.
-        let mut depth: Vec<f32> = r.colors.iter().map(|c| c.depth).collect();
-        fill_empty_depths(&mut depth);
-        let mut points = vec![0.0f32; n_patches * 3 * rays_per_patch];
-        for ray in 0..rays.len() {
-            let (patch, pix) = (ray / rays_per_patch, ray % rays_per_patch);
-            let (o, d) = (rays.origins[ray], rays.directions[ray]);
-            for a in 0..3 {
-                points[(patch * 3 + a) * rays_per_patch + pix] = o[a] + d[a] * depth[ray];
-            }
-        }
-        let rendered = patch_images(&r.colors, p);
+        let out = composite(session, seg, &r, &rays, layout);
         let t_render = timer.elapsed().as_secs_f64();
-        let features = seg.teacher.features(&session.scene, &patches, &rendered, !joint)?;
+        let features = seg.teacher.features(&session.scene, &patches, &out.images, !joint)?;
         let t_teacher = timer.elapsed().as_secs_f64();
-        let cls: Vec<Vec<f32>> = features.iter().map(|f| f.cls.clone()).collect();
-        let negatives = seg.miner.negatives(&cls, &mut rng);
-        let batch = PatchBatch {
-            n_patches,
-            patch: p,
-            d_seg,
-            logits: &logits,
-            points: &points,
-            features: &features,
-            negatives: &negatives,
-        };
-        let mut grad_logits = vec![0.0f32; logits.len()];
-        let mut stats = SegStepStats { samples_per_ray: n_samples as f64 / rays.len() as f64, ..Default::default() };
-        for l in &seg.losses {
-            let v = l.loss.loss_and_grad(&batch, &mut rng, l.weight, &mut grad_logits);
-            stats.total += l.weight as f64 * v.total;
-            stats.terms.extend(v.terms);
-        }
-        let t_losses = timer.elapsed().as_secs_f64();
-        let targets = if joint { captured_targets(session, &patches) } else { Vec::new() };
-        if joint {
-            let photometric = patch_mse(&r.colors, &targets);
+        let (mut stats, grad_logits) = losses(seg, &out, &features, layout, &mut rng);
+        stats.samples_per_ray = r.samples.len() as f64 / rays.len() as f64;
+        let targets = joint.then(|| captured_targets(session, &patches));
+        if let Some(targets) = &targets {
+            let photometric = patch_mse(&r.colors, targets);
             stats.total += cfg.photometric_weight as f64 * photometric;
             stats.terms.push(("photometric".into(), photometric));
         }
+        let t_losses = timer.elapsed().as_secs_f64();
         if !stats.total.is_finite() || grad_logits.iter().any(|g| !g.is_finite()) {
             bad_steps += 1;
-            log_line(
-                &bar,
-                format!(
+            observer.message(
+                Severity::Warning,
+                &format!(
                     "stage 2 step {}: non-finite loss or gradient (views {:?}), step skipped",
                     seg.step,
                     patches.iter().map(|p| p.view).collect::<Vec<_>>()
@@ -246,77 +210,180 @@ pub fn train_segmentation_observed(
             continue;
         }
         bad_steps = 0;
-
-        // Back through the compositing: ∂L/∂logits_k = w_k ∂L/∂s(ray).
-        let mut ray_grad_extra = vec![0.0f32; rays.len() * d_seg];
-        for (ray, g) in ray_grad_extra.chunks_exact_mut(d_seg).enumerate() {
-            let (patch, pix) = (ray / rays_per_patch, ray % rays_per_patch);
-            for (c, g) in g.iter_mut().enumerate() {
-                *g = grad_logits[(patch * d_seg + c) * rays_per_patch + pix];
-            }
-        }
-        let grad_sample = r.composite_values_backward(&ray_grad_extra, d_seg);
-        seg.frozen.head_backward(session, &mut seg.head, head_samples, &grad_sample);
+        let ray_grad = backward(session, seg, &r, layout, &grad_logits);
         let lr_factor = cfg.final_lr_factor.powf(seg.step as f32 / cfg.steps.max(1) as f32);
         seg.head.step(lr_factor);
-        if std::env::var("SOS_PROFILE").is_ok() {
-            eprintln!(
-                "stage 2: render {:.3} head {:.3} teacher {:.3} losses {:.3} backward {:.3}",
-                t_field,
-                t_render - t_field,
-                t_teacher - t_render,
-                t_losses - t_teacher,
-                timer.elapsed().as_secs_f64() - t_losses
-            );
-        }
-
-        if joint {
-            // The field learns from the photometric loss and from the logits' dependence on
-            // the compositing weights.
-            let scale = 2.0 * cfg.photometric_weight / (rays.len() * 3) as f32;
-            let grads: Vec<RayGrad> = (0..rays.len())
-                .map(|ray| {
-                    let mut g =
-                        RayGrad { extra: &ray_grad_extra[ray * d_seg..(ray + 1) * d_seg], ..Default::default() };
-                    for k in 0..3 {
-                        g.rgb[k] = scale * (r.colors[ray].rgb[k] - targets[ray][k]);
-                    }
-                    g
-                })
-                .collect();
-            let (g_sigma, g_rgb, _) = r.composite_backward(&sample_logits, d_seg, &grads);
-            let tape = r.tape.take();
-            session.field.backward(&r.samples.positions, &r.samples.directions, tape, &g_sigma, &g_rgb);
-            session.field.step(lr_factor * session.config.train.final_lr_factor);
+        stats.timing = Stage2Timing {
+            render: r.timing,
+            field: t_field,
+            head: t_render - t_field,
+            teacher: t_teacher - t_render,
+            losses: t_losses - t_teacher,
+            backward: timer.elapsed().as_secs_f64() - t_losses,
+        };
+        if let Some(targets) = &targets {
+            let joint = JointStep { weight: cfg.photometric_weight, targets, lr_factor };
+            joint.step(session, &mut r, &out.sample_logits, &ray_grad);
         }
         seg.frozen.recycle(&mut r);
         seg.step += 1;
         last = stats;
         observer.stage2_step(session, seg, &last)?;
-        let elapsed = started.elapsed().as_secs_f64();
-        bar.set_message(format!(
-            "loss {:+.4}  {:.1} s/step  {:.0} head samples/ray  cache {}/{}",
-            last.total,
-            elapsed / seg.step.max(1) as f64,
-            last.samples_per_ray,
-            seg.teacher.hits,
-            seg.teacher.hits + seg.teacher.misses
-        ));
-        bar.set_position(seg.step as u64);
-        if !show_progress && (seg.step.is_multiple_of((cfg.steps / 10).max(1)) || seg.step == cfg.steps) {
-            eprintln!(
-                "stage 2 step {}/{}: loss {:+.5}, {:.2} s/step, {:.0} head samples/ray, {:.0} s",
-                seg.step,
-                cfg.steps,
-                last.total,
-                elapsed / seg.step.max(1) as f64,
-                last.samples_per_ray,
-                elapsed
-            );
-        }
     }
-    bar.finish();
+    observer.stage_ends(Stage::Segmentation);
     Ok(last)
+}
+
+/// Where each ray of a step sits in the losses' layout: patch after patch, channel-first
+/// within a patch (`[patch, channel, pixel]`), while the renderer is ray-major
+/// (`[ray, channel]`, the rays of a patch consecutive).
+#[derive(Debug, Clone, Copy)]
+struct PatchLayout {
+    /// Rays along a patch's side.
+    side: usize,
+}
+
+impl PatchLayout {
+    fn rays_per_patch(self) -> usize {
+        self.side * self.side
+    }
+
+    /// `[ray, d]` values to `[patch, d, pixel]`.
+    fn to_patches(self, ray_major: &[f32], d: usize) -> Vec<f32> {
+        let n = self.rays_per_patch();
+        let mut out = vec![0.0f32; ray_major.len()];
+        for (ray, v) in ray_major.chunks_exact(d).enumerate() {
+            let (patch, pix) = (ray / n, ray % n);
+            for (c, &v) in v.iter().enumerate() {
+                out[(patch * d + c) * n + pix] = v;
+            }
+        }
+        out
+    }
+
+    /// `[patch, d, pixel]` values to `[ray, d]`.
+    fn to_rays(self, patch_major: &[f32], d: usize) -> Vec<f32> {
+        let n = self.rays_per_patch();
+        let mut out = vec![0.0f32; patch_major.len()];
+        for (ray, v) in out.chunks_exact_mut(d).enumerate() {
+            let (patch, pix) = (ray / n, ray % n);
+            for (c, v) in v.iter_mut().enumerate() {
+                *v = patch_major[(patch * d + c) * n + pix];
+            }
+        }
+        out
+    }
+}
+
+/// What the losses see of a step's render.
+struct Composited {
+    /// The head's logits at every surviving sample, `[samples, d_seg]`.
+    sample_logits: Vec<f32>,
+    /// Composited logits in the losses' layout, `[patch, d_seg, pixel]`.
+    logits: Vec<f32>,
+    /// Each ray's rendered 3D point (empty rays at the batch's farthest depth),
+    /// `[patch, 3, pixel]`.
+    points: Vec<f32>,
+    /// The rendered patches, the teacher's input with `teacher_source = "rendered"`.
+    images: Vec<RgbImage>,
+}
+
+/// The head on the surviving samples, its logits composited with the field's weights (as
+/// inference composites them), and the rendered depth's points and colours.
+fn composite(session: &Session, seg: &mut Segmenter, r: &Rendered, rays: &RayBatch, layout: PatchLayout) -> Composited {
+    let d_seg = seg.head.outputs();
+    let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
+    let sample_logits = seg.frozen.head_forward(session, &seg.head, head_samples);
+    let logits = layout.to_patches(&r.composite_values(&sample_logits, d_seg, |_| true), d_seg);
+    let mut depth: Vec<f32> = r.colors.iter().map(|c| c.depth).collect();
+    fill_empty_depths(&mut depth);
+    let ray_points: Vec<f32> = (0..rays.len())
+        .flat_map(|ray| {
+            let (o, d) = (rays.origins[ray], rays.directions[ray]);
+            let t = depth[ray];
+            (0..3).map(move |a| o[a] + d[a] * t)
+        })
+        .collect();
+    let points = layout.to_patches(&ray_points, 3);
+    let images = patch_images(&r.colors, layout.side);
+    Composited { sample_logits, logits, points, images }
+}
+
+/// Negative pairs from the teacher's global vectors, then every loss term: the weighted total,
+/// the terms, and the gradient of the total with respect to the composited logits.
+fn losses(
+    seg: &Segmenter,
+    out: &Composited,
+    features: &[FeatureMap],
+    layout: PatchLayout,
+    rng: &mut rand_chacha::ChaCha8Rng,
+) -> (SegStepStats, Vec<f32>) {
+    let cls: Vec<Vec<f32>> = features.iter().map(|f| f.cls.clone()).collect();
+    let negatives = seg.miner.negatives(&cls, rng);
+    let d_seg = seg.head.outputs();
+    let batch = PatchBatch {
+        n_patches: out.images.len(),
+        patch: layout.side,
+        d_seg,
+        logits: &out.logits,
+        points: &out.points,
+        features,
+        negatives: &negatives,
+    };
+    let mut grad_logits = vec![0.0f32; out.logits.len()];
+    let mut stats = SegStepStats::default();
+    for l in &seg.losses {
+        let v = l.loss.loss_and_grad(&batch, rng, l.weight, &mut grad_logits);
+        stats.total += l.weight as f64 * v.total;
+        stats.terms.extend(v.terms);
+    }
+    (stats, grad_logits)
+}
+
+/// Back through the compositing (`∂L/∂logits_k = w_k ∂L/∂s(ray)`) and the head; returns the
+/// gradient with respect to each ray's composited logits, `[ray, d_seg]`.
+fn backward(
+    session: &Session,
+    seg: &mut Segmenter,
+    r: &Rendered,
+    layout: PatchLayout,
+    grad_logits: &[f32],
+) -> Vec<f32> {
+    let d_seg = seg.head.outputs();
+    let ray_grad = layout.to_rays(grad_logits, d_seg);
+    let grad_sample = r.composite_values_backward(&ray_grad, d_seg);
+    let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
+    seg.frozen.head_backward(session, &mut seg.head, head_samples, &grad_sample);
+    ray_grad
+}
+
+/// Joint training: the field learns from the photometric loss against the photographs and
+/// from the logits' dependence on the compositing weights.
+struct JointStep<'a> {
+    weight: f32,
+    targets: &'a [[f32; 3]],
+    lr_factor: f32,
+}
+
+impl JointStep<'_> {
+    fn step(&self, session: &mut Session, r: &mut Rendered, sample_logits: &[f32], ray_grad: &[f32]) {
+        let n_rays = r.colors.len();
+        let d_seg = ray_grad.len() / n_rays.max(1);
+        let scale = 2.0 * self.weight / (n_rays * 3) as f32;
+        let grads: Vec<RayGrad> = (0..n_rays)
+            .map(|ray| {
+                let mut g = RayGrad { extra: &ray_grad[ray * d_seg..(ray + 1) * d_seg], ..Default::default() };
+                for k in 0..3 {
+                    g.rgb[k] = scale * (r.colors[ray].rgb[k] - self.targets[ray][k]);
+                }
+                g
+            })
+            .collect();
+        let (g_sigma, g_rgb, _) = r.composite_backward(sample_logits, d_seg, &grads);
+        let tape = r.tape.take();
+        session.field.backward(&r.samples.positions, &r.samples.directions, tape, &g_sigma, &g_rgb);
+        session.field.step(self.lr_factor * session.config.train.final_lr_factor);
+    }
 }
 
 /// Rendered colours of `p x p` patches, patch after patch, as images.
@@ -358,4 +425,32 @@ fn patch_mse(colors: &[RayColor], targets: &[[f32; 3]]) -> f64 {
     let sum: f64 =
         colors.iter().zip(targets).map(|(c, t)| (0..3).map(|k| ((c.rgb[k] - t[k]) as f64).powi(2)).sum::<f64>()).sum();
     sum / (colors.len() * 3).max(1) as f64
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::composite::EMPTY_RAY_DEPTH;
+
+    #[test]
+    fn patch_layout_is_patch_then_channel_then_pixel_and_inverts() {
+        // Two 2x2 patches (8 rays), two channels: value = 10·ray + channel.
+        let layout = PatchLayout { side: 2 };
+        let rays: Vec<f32> = (0..8).flat_map(|ray| (0..2).map(move |c| (10 * ray + c) as f32)).collect();
+        let patches = layout.to_patches(&rays, 2);
+        // Patch 1, channel 1, pixel 2 is ray 4 + 2 = 6, channel 1.
+        assert_eq!(patches[(2 + 1) * 4 + 2], 61.0);
+        assert_eq!(patches[..4], [0.0, 10.0, 20.0, 30.0]);
+        assert_eq!(layout.to_rays(&patches, 2), rays);
+    }
+
+    #[test]
+    fn empty_depths_take_the_farthest_real_depth() {
+        let mut depth = vec![1.0, EMPTY_RAY_DEPTH, 3.0];
+        fill_empty_depths(&mut depth);
+        assert_eq!(depth, [1.0, 3.0, 3.0]);
+        let mut none = vec![EMPTY_RAY_DEPTH; 2];
+        fill_empty_depths(&mut none);
+        assert_eq!(none, [0.0, 0.0]);
+    }
 }

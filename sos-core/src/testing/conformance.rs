@@ -451,11 +451,10 @@ fn check_two_stage_run(kind: &str, config: &dyn RadianceFieldConfig, hide_capabi
         let field = config.build(&session.scene.extent, session.config.seed).expect("built once already");
         session.field = Box::new(Bare(field));
     }
-    crate::train::photometric::train_photometric(&mut session, false)
-        .unwrap_or_else(|e| panic!("{kind}: stage 1 fails: {e}"));
+    crate::train::photometric::train_photometric(&mut session).unwrap_or_else(|e| panic!("{kind}: stage 1 fails: {e}"));
     let mut seg = crate::segment::train::Segmenter::build(&session)
         .unwrap_or_else(|e| panic!("{kind}: stage 2 cannot start: {e}"));
-    let stats = crate::segment::train::train_segmentation(&mut session, &mut seg, false)
+    let stats = crate::segment::train::train_segmentation(&mut session, &mut seg)
         .unwrap_or_else(|e| panic!("{kind}: stage 2 fails: {e}"));
     assert!(stats.total.is_finite(), "{kind}: stage-2 loss {}", stats.total);
     let view = session.scene.test.first().copied().unwrap_or(0);

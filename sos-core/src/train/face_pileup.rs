@@ -126,6 +126,7 @@ mod tests {
             n_candidates: n,
             coarse: None,
             seg_input: Vec::new(),
+            timing: Default::default(),
         }
     }
 

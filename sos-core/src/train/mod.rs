@@ -5,7 +5,6 @@ pub mod evaluate;
 pub mod face_pileup;
 pub mod observer;
 pub mod photometric;
-pub mod progress;
 pub mod session;
 
 pub use session::Session;

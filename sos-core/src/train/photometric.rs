@@ -2,17 +2,15 @@
 
 use std::time::Instant;
 
-use indicatif::{ProgressBar, ProgressStyle};
 use rand::{Rng, SeedableRng};
 
 use crate::error::RunError;
 use crate::plugin::field::plain;
 use crate::render::composite::{RayColor, RayGrad};
 use crate::render::rays::RayBatch;
-use crate::render::renderer::render;
+use crate::render::renderer::{render, RenderTiming};
 use crate::train::face_pileup::{face_pileup_warning, FaceFigures, FaceMonitor};
-use crate::train::observer::{TrainObserver, Unobserved};
-use crate::train::progress::log_line;
+use crate::train::observer::{Severity, Stage, TrainObserver, Unobserved};
 use crate::train::session::Session;
 
 /// Stage-1 steps between looks at where rays end on a box's faces.
@@ -35,6 +33,24 @@ pub struct StepStats {
     /// Rays ending on a bounded extent's faces, and how badly they fit (`None` for other
     /// extents).
     pub faces: Option<FaceFigures>,
+    /// Where the step's time went.
+    #[serde(skip)]
+    pub timing: Stage1Timing,
+}
+
+/// Seconds spent in each phase of one stage-1 step.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Stage1Timing {
+    /// The render of the batch (marching, density pass, full pass).
+    pub render: RenderTiming,
+    /// Back through the compositing.
+    pub composite_backward: f64,
+    /// The field's (and its proposal network's) backward pass.
+    pub field_backward: f64,
+    /// The field's regulariser and the finiteness check.
+    pub regularize: f64,
+    /// The optimiser step.
+    pub step: f64,
 }
 
 /// MSE over a batch's rays and the per-ray gradients (`scale · (c − target)` per channel), with
@@ -86,30 +102,23 @@ fn describe_bad_rays(fine: &[RayColor], coarse: Option<&[RayColor]>, pixels: &[(
     )
 }
 
-/// Runs stage 1 from `session.step` to `train.steps`, checkpointing along the way.
-pub fn train_photometric(session: &mut Session, show_progress: bool) -> Result<StepStats, RunError> {
-    train_photometric_observed(session, show_progress, &mut Unobserved)
+/// Runs stage 1 from `session.step` to `train.steps`, checkpointing along the way; messages
+/// are dropped (see [`train_photometric_observed`]).
+pub fn train_photometric(session: &mut Session) -> Result<StepStats, RunError> {
+    train_photometric_observed(session, &mut Unobserved)
 }
 
-/// [`train_photometric`], calling `observer` after every step.
+/// [`train_photometric`], telling `observer` of the stage, its messages and every step.
 pub fn train_photometric_observed(
     session: &mut Session,
-    show_progress: bool,
     observer: &mut dyn TrainObserver,
 ) -> Result<StepStats, RunError> {
     let total = session.config.train.steps;
     let n_rays = session.config.train.rays_per_step;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed.wrapping_add(session.step as u64));
-    let bar = if show_progress { ProgressBar::new(total as u64) } else { ProgressBar::hidden() };
-    bar.set_style(
-        ProgressStyle::with_template("stage 1 {bar:30} {pos}/{len} {msg} [{elapsed_precise}<{eta_precise}]")
-            .expect("valid template"),
-    );
-    bar.set_position(session.step as u64);
-    let started = Instant::now();
+    observer.stage_begins(Stage::Photometric, session.step, total);
     let mut last = StepStats::default();
     let mut bad_steps = 0;
-    let mut smoothed_psnr = 0.0;
     let mut faces = FaceMonitor::default();
     let mut warned_faces = false;
     while session.step < total {
@@ -209,7 +218,7 @@ pub fn train_photometric_observed(
         if !finite {
             session.field.discard_gradients();
             bad_steps += 1;
-            log_line(&bar, format!(
+            observer.message(Severity::Warning, &format!(
                 "stage 1 step {}: non-finite loss or gradient (mse {mse}, coarse mse {coarse_mse}), step skipped; batch: {}",
                 session.step,
                 describe_bad_rays(&r.colors, coarse.as_ref().map(|c| &c.colors[..]), &pixels)
@@ -229,15 +238,13 @@ pub fn train_photometric_observed(
         let progress = session.step as f32 / total.max(1) as f32;
         let lr_factor = session.config.train.final_lr_factor.powf(progress);
         session.field.step(lr_factor);
-        if std::env::var("SOS_PROFILE").is_ok() {
-            eprintln!(
-                "backward: composite {:.3} field {:.3} regularize {:.3} step {:.3}",
-                t_cb,
-                t_fb - t_cb,
-                t_reg - t_fb,
-                timer.elapsed().as_secs_f64() - t_reg
-            );
-        }
+        let timing = Stage1Timing {
+            render: r.timing,
+            composite_backward: t_cb,
+            field_backward: t_fb - t_cb,
+            regularize: t_reg - t_fb,
+            step: timer.elapsed().as_secs_f64() - t_reg,
+        };
         session.step += 1;
 
         last = StepStats {
@@ -246,30 +253,14 @@ pub fn train_photometric_observed(
             samples_per_ray: r.samples.len() as f64 / n_rays as f64,
             opacity: r.colors.iter().map(|c| c.acc as f64).sum::<f64>() / n_rays as f64,
             faces: faces.figures(),
+            timing,
         };
         // Once the field has settled, say so while the run can still be stopped.
         if !warned_faces && 2 * session.step >= total {
             if let Some(w) = last.faces.as_ref().and_then(face_pileup_warning) {
-                log_line(&bar, format!("warning: stage 1 step {}: {w}", session.step));
+                observer.message(Severity::Warning, &format!("stage 1 step {}: {w}", session.step));
                 warned_faces = true;
             }
-        }
-        smoothed_psnr = if smoothed_psnr == 0.0 { last.psnr } else { 0.9 * smoothed_psnr + 0.1 * last.psnr };
-        let rays_per_s = (session.step as f64 * n_rays as f64) / started.elapsed().as_secs_f64().max(1e-9);
-        bar.set_message(format!(
-            "loss {:.5} psnr {:.2} dB  {:.0} rays/s  {:.0} samples/ray",
-            mse, smoothed_psnr, rays_per_s, last.samples_per_ray
-        ));
-        bar.set_position(session.step as u64);
-        if !show_progress && (session.step.is_multiple_of((total / 10).max(1)) || session.step == total) {
-            let faces = last.faces.map_or(String::new(), |f| {
-                format!(", {:.1}% of rays end on a face ({:.1}x the error)", 100.0 * f.ray_fraction, f.error_ratio)
-            });
-            eprintln!(
-                "stage 1 step {}/{}: loss {:.5} psnr {:.2} dB, opacity {:.3}, {:.0} rays/s, {:.0} samples/ray{faces}, {:.0} s",
-                session.step, total, mse, smoothed_psnr, last.opacity, rays_per_s, last.samples_per_ray,
-                started.elapsed().as_secs_f64()
-            );
         }
         observer.stage1_step(session, &last)?;
         let every = session.config.train.checkpoint_every;
@@ -277,7 +268,7 @@ pub fn train_photometric_observed(
             session.save_checkpoint()?;
         }
     }
-    bar.finish();
+    observer.stage_ends(Stage::Photometric);
     session.bake_occupancy();
     session.save_checkpoint()?;
     Ok(last)

@@ -13,7 +13,9 @@ use sos_core::segment::store::{save_with_head, HeadMeta};
 use sos_core::segment::train::{train_segmentation_observed, SegStepStats, Segmenter};
 use sos_core::train::evaluate::{evaluate_views, overfitting_warning};
 use sos_core::train::face_pileup::face_pileup_warning;
-use sos_core::train::observer::TrainObserver;
+use sos_core::train::observer::{Severity, Stage, TrainObserver};
+
+use crate::console::Console;
 use sos_core::train::photometric::{train_photometric_observed, StepStats};
 use sos_core::train::Session;
 
@@ -51,7 +53,7 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
 
     let stage1 = Instant::now();
     curves.begin_stage();
-    let stage1_stats = train_photometric_observed(&mut session, false, &mut curves)?;
+    let stage1_stats = train_photometric_observed(&mut session, &mut curves)?;
     timing.stage1 = stage1.elapsed().as_secs_f64() - curves.stage1_eval;
     let mut notes = Vec::new();
     let metrics = match segmenter {
@@ -68,7 +70,7 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
         Some(mut seg) => {
             let stage2 = Instant::now();
             curves.begin_stage();
-            train_segmentation_observed(&mut session, &mut seg, false, &mut curves)?;
+            train_segmentation_observed(&mut session, &mut seg, &mut curves)?;
             timing.stage2 = stage2.elapsed().as_secs_f64() - curves.stage2_eval;
             save_with_head(&session, &seg.head, HeadMeta { steps: seg.step })
                 .context("saving the segmentation head")?;
@@ -140,6 +142,8 @@ struct CurveRecorder {
     stage1_eval: f64,
     stage2_eval: f64,
     curves: Curves,
+    /// The run's log lines, as `sos train` prints them without a terminal.
+    console: Console,
 }
 
 impl CurveRecorder {
@@ -152,6 +156,7 @@ impl CurveRecorder {
             stage1_eval: 0.0,
             stage2_eval: 0.0,
             curves: Curves::default(),
+            console: Console::new(false),
         }
     }
 
@@ -183,7 +188,20 @@ impl CurveRecorder {
 }
 
 impl TrainObserver for CurveRecorder {
-    fn stage1_step(&mut self, session: &Session, _stats: &StepStats) -> Result<(), RunError> {
+    fn stage_begins(&mut self, stage: Stage, step: usize, total: usize) {
+        self.console.stage_begins(stage, step, total);
+    }
+
+    fn message(&mut self, severity: Severity, text: &str) {
+        self.console.message(severity, text);
+    }
+
+    fn stage_ends(&mut self, stage: Stage) {
+        self.console.stage_ends(stage);
+    }
+
+    fn stage1_step(&mut self, session: &Session, stats: &StepStats) -> Result<(), RunError> {
+        self.console.stage1_step(session, stats)?;
         if !self.sampled(session.step, self.stage1_steps) {
             return Ok(());
         }
@@ -199,7 +217,8 @@ impl TrainObserver for CurveRecorder {
         Ok(())
     }
 
-    fn stage2_step(&mut self, session: &Session, seg: &Segmenter, _stats: &SegStepStats) -> Result<(), RunError> {
+    fn stage2_step(&mut self, session: &Session, seg: &Segmenter, stats: &SegStepStats) -> Result<(), RunError> {
+        self.console.stage2_step(session, seg, stats)?;
         if !self.sampled(seg.step, self.stage2_steps) {
             return Ok(());
         }

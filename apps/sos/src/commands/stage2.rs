@@ -9,8 +9,10 @@ use sos_core::segment::evaluate::{evaluate_masks, MaskEval};
 use sos_core::segment::head::SegHead;
 use sos_core::segment::infer::MaskInference;
 use sos_core::segment::store::{save_with_head, HeadMeta};
-use sos_core::segment::train::{train_segmentation, SegStepStats, Segmenter};
+use sos_core::segment::train::{train_segmentation_observed, SegStepStats, Segmenter};
 use sos_core::train::Session;
+
+use crate::console::Console;
 
 /// A trained stage 2.
 pub struct Stage2 {
@@ -33,7 +35,7 @@ pub fn train(session: &mut Session, mut seg: Segmenter, progress: bool) -> anyho
         session.config.segment.patch_size,
         seg.head.mlp.num_parameters()
     );
-    let stats = train_segmentation(session, &mut seg, progress)?;
+    let stats = train_segmentation_observed(session, &mut seg, &mut Console::new(progress))?;
     let seconds = started.elapsed().as_secs_f64();
     eprintln!("stage 2 done: {} steps, last loss {:+.5}, {:.1} s", seg.step, stats.total, seconds);
     save_with_head(session, &seg.head, HeadMeta { steps: seg.step }).context("saving the segmentation head")?;

@@ -8,10 +8,11 @@ use anyhow::Context;
 use sos_core::segment::train::Segmenter;
 use sos_core::train::evaluate::{evaluate_views, overfitting_warning, ImageEval};
 use sos_core::train::face_pileup::face_pileup_warning;
-use sos_core::train::photometric::{train_photometric, StepStats};
+use sos_core::train::photometric::{train_photometric_observed, StepStats};
 use sos_core::train::Session;
 
 use super::stage2;
+use crate::console::Console;
 
 /// `sos train`: stage 1, then stage 2 and masks (or an evaluation without stage 2).
 pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
@@ -35,7 +36,7 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
         session.load_checkpoint(None)?;
         eprintln!("resumed at step {}", session.step);
     }
-    let stats = train_photometric(&mut session, progress)?;
+    let stats = train_photometric_observed(&mut session, &mut Console::new(progress))?;
     let train_seconds = started.elapsed().as_secs_f64();
     eprintln!("stage 1 done: {} steps, last batch PSNR {:.2} dB, {:.1} s", session.step, stats.psnr, train_seconds);
     let metrics_path = session.run_dir.join("metrics.json");
