@@ -271,8 +271,9 @@ pub struct TrainConfig {
     /// Stop marching a ray once its transmittance is below this; 0 disables.
     pub early_stop: f32,
     /// Weight of the per-sample colour loss `Σ_k w_k ‖c_k − C‖²` (DVGO's `rgbper`), which
-    /// clears semi-transparent fog quickly; 0 disables.
-    pub sample_color_weight: f32,
+    /// clears semi-transparent fog quickly; 0 disables. `sample_color_weight` is accepted too.
+    #[serde(alias = "sample_color_weight")]
+    pub sample_colour_weight: f32,
     /// Weight of mip-NeRF 360's distortion loss over the marched samples
     /// (`crate::render::distortion`), which favours weight gathered in one thin interval over
     /// spread-out fog; 0 disables. Off by default: on a box that holds the cameras but cuts
@@ -303,7 +304,7 @@ impl Default for TrainConfig {
             final_lr_factor: 0.1,
             samples_per_ray: 384,
             early_stop: 1e-4,
-            sample_color_weight: 0.1,
+            sample_colour_weight: 0.1,
             distortion_weight: 0.0,
             weight_threshold: 1e-4,
             occupancy: true,
@@ -375,8 +376,8 @@ impl RunConfig {
         if !(0.0..1.0).contains(&t.early_stop) {
             return Err(invalid("train.early_stop", "must be in [0, 1)"));
         }
-        if !(t.sample_color_weight >= 0.0 && t.sample_color_weight.is_finite()) {
-            return Err(invalid("train.sample_color_weight", "must be zero or positive"));
+        if !(t.sample_colour_weight >= 0.0 && t.sample_colour_weight.is_finite()) {
+            return Err(invalid("train.sample_colour_weight", "must be zero or positive"));
         }
         if !(t.distortion_weight >= 0.0 && t.distortion_weight.is_finite()) {
             return Err(invalid("train.distortion_weight", "must be zero or positive"));

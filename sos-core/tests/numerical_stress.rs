@@ -15,7 +15,7 @@ use sos_core::metrics::{
 use sos_core::plugin::field::{Hierarchical, HierarchicalSampling};
 use sos_core::plugin::{FieldTape, RadianceField};
 use sos_core::render::composite::{
-    composite, composite_backward, weights, RayColor, RayGrad, RaySamples, EMPTY_RAY_ACC, EMPTY_RAY_DEPTH,
+    composite, composite_backward, weights, RayColour, RayGrad, RaySamples, EMPTY_RAY_ACC, EMPTY_RAY_DEPTH,
 };
 use sos_core::render::contraction::Contraction;
 use sos_core::render::memory_budget::MemoryBudget;
@@ -76,7 +76,7 @@ impl Ray {
 /// Forward and backward of one ray with fixed upstream gradients.
 struct Result1 {
     w: Vec<f32>,
-    out: RayColor,
+    out: RayColour,
     extra: [f32; D_EXTRA],
     g_sigma: Vec<f32>,
     g_rgb: Vec<[f32; 3]>,
@@ -220,7 +220,7 @@ fn an_empty_ray_reports_the_sentinel_and_ignores_its_depth_gradient() {
 fn a_ray_with_no_samples_is_empty() {
     let ray = Ray::new(Vec::new(), Vec::new());
     let r = run(&ray, 1.0);
-    assert_eq!(r.out, RayColor { rgb: [0.0; 3], depth: EMPTY_RAY_DEPTH, acc: 0.0, median_depth: EMPTY_RAY_DEPTH });
+    assert_eq!(r.out, RayColour { rgb: [0.0; 3], depth: EMPTY_RAY_DEPTH, acc: 0.0, median_depth: EMPTY_RAY_DEPTH });
     assert_eq!(r.extra, [0.0; D_EXTRA]);
     assert!(r.g_sigma.is_empty() && r.g_rgb.is_empty() && r.g_extra.is_empty());
     let mut w: [f32; 0] = [];
@@ -315,7 +315,7 @@ fn rendering_empty_opaque_and_extreme_fields_stays_finite() {
                 let mut r = render(&field, ctx, &rays, options, true, &mut rng);
                 r.composite();
                 let mut missed = 0;
-                for (i, c) in r.colors.iter().enumerate() {
+                for (i, c) in r.colours.iter().enumerate() {
                     assert!(
                         c.rgb.iter().all(|v| v.is_finite()) && c.acc.is_finite() && c.depth.is_finite(),
                         "{what}: {c:?}"
@@ -350,8 +350,8 @@ fn rendering_empty_opaque_and_extreme_fields_stays_finite() {
             min_weight: 0.0,
             memory: MemoryBudget::unlimited(),
         };
-        let (colors, logits) = render_inference(&field, ctx, &rays, options, 50, Some(&channels));
-        assert_eq!((colors.len(), logits.len()), (rays.len(), 2 * rays.len()));
+        let (colours, logits) = render_inference(&field, ctx, &rays, options, 50, Some(&channels));
+        assert_eq!((colours.len(), logits.len()), (rays.len(), 2 * rays.len()));
         assert!(logits.iter().all(|v| v.is_finite() && v.abs() <= 1.0 + 1e-4), "σ={sigma:e}: logits");
     }
 }

@@ -72,6 +72,17 @@ fn list_names_the_default_plugins() {
 }
 
 #[test]
+fn colour_keys_are_spelled_colour_and_accept_color() {
+    let path = std::path::Path::new("colour.toml");
+    let base = "[scene]\nkind = \"synthetic\"\n[train]\n";
+    for key in ["sample_colour_weight", "sample_color_weight"] {
+        let config = RunConfig::parse(&format!("{base}{key} = 0.25\n"), path).expect(key);
+        assert_eq!(config.train.sample_colour_weight, 0.25, "{key}");
+        assert!(config.to_toml().contains("sample_colour_weight = 0.25"), "{key} is written as `colour`");
+    }
+}
+
+#[test]
 fn init_output_parses_back_and_round_trips() {
     let dir = temp_dir("init");
     let out = sos(&["init"], &dir);

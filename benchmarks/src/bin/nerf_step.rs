@@ -25,7 +25,7 @@ use sos_core::config::RunConfig;
 use sos_core::nn::Linear;
 use sos_core::plugin::field::{Hierarchical, HierarchicalSampling};
 use sos_core::plugin::{FieldTape, RadianceField};
-use sos_core::render::composite::{RayColor, RayGrad};
+use sos_core::render::composite::{RayColour, RayGrad};
 use sos_core::render::contraction::Contraction;
 use sos_core::render::rays::RayBatch;
 use sos_core::render::renderer::render;
@@ -48,7 +48,7 @@ rays_per_step = 1024
 occupancy = false
 early_stop = 0.0
 weight_threshold = 0.0
-sample_color_weight = 0.0
+sample_colour_weight = 0.0
 [segment]
 steps = 0
 "#;
@@ -365,8 +365,8 @@ fn main() {
         r.composite();
         let mut coarse = r.coarse.take().expect("hierarchical pass");
         let scale = 2.0 / (n_rays * 3) as f32;
-        let grads = |colors: &[RayColor], mse: &mut f64| -> Vec<RayGrad<'static>> {
-            colors
+        let grads = |colours: &[RayColour], mse: &mut f64| -> Vec<RayGrad<'static>> {
+            colours
                 .iter()
                 .zip(&targets)
                 .map(|(c, t)| {
@@ -381,8 +381,8 @@ fn main() {
                 .collect()
         };
         let mut mse = 0.0;
-        let gf = grads(&r.colors, &mut mse);
-        let gc = grads(&coarse.colors, &mut 0.0);
+        let gf = grads(&r.colours, &mut mse);
+        let gc = grads(&coarse.colours, &mut 0.0);
         let (gs, grgb, _) = r.composite_backward(&[], 0, &gf);
         let (cgs, cgrgb, _) = coarse.composite_backward(&[], 0, &gc);
         let tape = r.tape.take();

@@ -43,7 +43,7 @@ pub struct RaySamples<'a> {
 
 /// Composited values of one ray.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct RayColor {
+pub struct RayColour {
     /// Expected colour.
     pub rgb: [f32; 3],
     /// Expected distance `Σ w t`, or [`EMPTY_RAY_DEPTH`] for an empty ray.
@@ -57,10 +57,10 @@ pub struct RayColor {
     pub median_depth: f32,
 }
 
-/// Accumulated opacity at which [`RayColor::median_depth`] is read.
+/// Accumulated opacity at which [`RayColour::median_depth`] is read.
 pub const MEDIAN_OPACITY: f32 = 0.5;
 
-impl RayColor {
+impl RayColour {
     /// The expected 3D point `Σ w_k x_k = acc · origin + depth · direction` of a ray with a
     /// unit `direction` (the ray origin for an empty ray).
     pub fn expected_point(&self, origin: [f32; 3], direction: [f32; 3]) -> [f32; 3] {
@@ -91,12 +91,12 @@ pub fn weights(sigma: &[f32], delta: &[f32], skipped_tau: &[f32], weights: &mut 
 }
 
 /// Composites one ray; writes the weights into `w` and the extra channels into `extra_out`.
-pub fn composite(s: &RaySamples, w: &mut [f32], extra_out: &mut [f32]) -> RayColor {
+pub fn composite(s: &RaySamples, w: &mut [f32], extra_out: &mut [f32]) -> RayColour {
     let n = s.sigma.len();
     debug_assert!(s.delta.len() == n && s.t.len() == n && s.rgb.len() == n);
     debug_assert_eq!(s.extra.len(), n * s.d_extra);
     weights(s.sigma, s.delta, s.skipped_tau, w);
-    let mut out = RayColor::default();
+    let mut out = RayColour::default();
     let mut median = None;
     extra_out.fill(0.0);
     for k in 0..n {

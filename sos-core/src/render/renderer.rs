@@ -16,7 +16,7 @@ use rayon::prelude::*;
 use crate::camera::Vec3;
 use crate::plugin::field::{plain, Hierarchical};
 use crate::plugin::{FieldTape, RadianceField};
-use crate::render::composite::{self, RayColor, RayGrad, RaySamples};
+use crate::render::composite::{self, RayColour, RayGrad, RaySamples};
 use crate::render::contraction::Contraction;
 use crate::render::density_pass::{density_pass, KeptState};
 use crate::render::memory_budget::MemoryBudget;
@@ -67,7 +67,7 @@ pub struct Rendered {
     /// Compositing weight of each sample (filled by [`Rendered::composite`]).
     pub weights: Vec<f32>,
     /// Per-ray results (filled by [`Rendered::composite`]).
-    pub colors: Vec<RayColor>,
+    pub colours: Vec<RayColour>,
     /// The field's tape for its backward pass.
     pub tape: FieldTape,
     /// Candidates placed before the density pass (for statistics).
@@ -280,7 +280,7 @@ fn render_impl(
             density,
             rgb,
             weights: Vec::new(),
-            colors: Vec::new(),
+            colours: Vec::new(),
             tape,
             n_candidates,
             coarse,
@@ -324,7 +324,7 @@ fn render_impl(
         density,
         rgb,
         weights: Vec::new(),
-        colors: Vec::new(),
+        colours: Vec::new(),
         tape,
         n_candidates,
         coarse,
@@ -371,7 +371,7 @@ fn propose(
             density,
             rgb,
             weights: Vec::new(),
-            colors: Vec::new(),
+            colours: Vec::new(),
             tape,
             n_candidates: n,
             coarse: None,
@@ -504,13 +504,13 @@ impl Rendered {
     pub fn composite(&mut self) {
         let n_rays = self.samples.n_rays();
         let mut weights = vec![0.0; self.samples.len()];
-        let mut colors = vec![RayColor::default(); n_rays];
-        for (r, color) in colors.iter_mut().enumerate() {
+        let mut colours = vec![RayColour::default(); n_rays];
+        for (r, color) in colours.iter_mut().enumerate() {
             let s = self.ray_samples(r, &[], 0);
             *color = composite::composite(&s, &mut weights[self.samples.range(r)], &mut []);
         }
         self.weights = weights;
-        self.colors = colors;
+        self.colours = colours;
     }
 
     /// `Σ_k w_k e_k` per ray over the samples with `w_k > extra.min_weight`, after
@@ -571,7 +571,7 @@ impl Rendered {
             composite::composite_backward(
                 &s,
                 &self.weights[range.clone()],
-                self.colors[r].acc,
+                self.colours[r].acc,
                 g,
                 &mut g_sigma[range.clone()],
                 &mut g_rgb[range.clone()],
@@ -602,8 +602,8 @@ pub fn render_inference(
     options: RenderOptions,
     chunk: usize,
     extra: Option<&ExtraChannels>,
-) -> (Vec<RayColor>, Vec<f32>) {
-    let mut colors = Vec::with_capacity(rays.len());
+) -> (Vec<RayColour>, Vec<f32>) {
+    let mut colours = Vec::with_capacity(rays.len());
     let mut extras = Vec::with_capacity(rays.len() * extra.map_or(0, |e| e.dim));
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     let mut start = 0;
@@ -614,10 +614,10 @@ pub fn render_inference(
         if let Some(extra) = extra {
             extras.extend(r.composite_extra(extra));
         }
-        colors.extend(r.colors);
+        colours.extend(r.colours);
         start = end;
     }
-    (colors, extras)
+    (colours, extras)
 }
 
 #[cfg(test)]
@@ -766,14 +766,14 @@ mod tests {
         (extent, Contraction::new(&extent), RayBatch::full_image(&cam))
     }
 
-    fn colors(field: &Ball, options: RenderOptions) -> (Vec<RayColor>, usize) {
+    fn colours(field: &Ball, options: RenderOptions) -> (Vec<RayColour>, usize) {
         let (extent, contraction, rays) = setup();
         let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
         field.evaluated.store(0, Ordering::Relaxed);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
         let mut r = render(field, ctx, &rays, options, false, &mut rng);
         r.composite();
-        (r.colors, field.evaluated.load(Ordering::Relaxed))
+        (r.colours, field.evaluated.load(Ordering::Relaxed))
     }
 
     /// Extra channels composite `Σ w_k e_k` over the samples above their weight threshold only,
@@ -792,10 +792,10 @@ mod tests {
         // Channel 0 is 1 everywhere (so it composites to the selected weight), channel 1 is z.
         let eval = |p: &[Vec3]| p.iter().flat_map(|p| [1.0, p[2]]).collect::<Vec<f32>>();
         let all = ExtraChannels { dim: 2, min_weight: 0.0, eval: &eval };
-        let (colors, extra) = render_inference(&field, ctx, &rays, options, 100, Some(&all));
+        let (colours, extra) = render_inference(&field, ctx, &rays, options, 100, Some(&all));
         let (plain, none) = render_inference(&field, ctx, &rays, options, 100, None);
         assert!(none.is_empty());
-        for ((c, p), e) in colors.iter().zip(&plain).zip(extra.chunks_exact(2)) {
+        for ((c, p), e) in colours.iter().zip(&plain).zip(extra.chunks_exact(2)) {
             assert_eq!(c.rgb, p.rgb);
             assert!((e[0] - c.acc).abs() < 1e-5, "{} vs acc {}", e[0], c.acc);
         }
@@ -803,7 +803,7 @@ mod tests {
         let strict = ExtraChannels { dim: 2, min_weight: 0.05, eval: &eval };
         let (_, thresholded) = render_inference(&field, ctx, &rays, options, 100, Some(&strict));
         let (mut dropped, mut hits) = (0.0f32, 0);
-        for ((c, a), b) in colors.iter().zip(extra.chunks_exact(2)).zip(thresholded.chunks_exact(2)) {
+        for ((c, a), b) in colours.iter().zip(extra.chunks_exact(2)).zip(thresholded.chunks_exact(2)) {
             assert!(b[0] <= a[0] + 1e-6);
             if c.acc > 0.5 {
                 hits += 1;
@@ -874,11 +874,11 @@ mod tests {
     fn early_termination_skips_density_work_and_keeps_colours() {
         let field = Ball::new(None, false);
         let march = MarchOptions { steps: 256, stratified: false };
-        let (full, _) = colors(
+        let (full, _) = colours(
             &field,
             RenderOptions { march, early_stop: 0.0, min_weight: 0.0, memory: MemoryBudget::unlimited() },
         );
-        let (pruned, evaluated) = colors(
+        let (pruned, evaluated) = colours(
             &field,
             RenderOptions { march, early_stop: 1e-4, min_weight: 1e-4, memory: MemoryBudget::unlimited() },
         );
@@ -891,7 +891,7 @@ mod tests {
             assert!((a.acc - b.acc).abs() < 2e-3);
         }
         // Rays through the ball stop inside it, skipping at least the back half of the box.
-        let (_, all) = colors(
+        let (_, all) = colours(
             &field,
             RenderOptions { march, early_stop: 0.0, min_weight: 1e-9, memory: MemoryBudget::unlimited() },
         );
@@ -901,7 +901,7 @@ mod tests {
     #[test]
     fn hierarchical_sampling_concentrates_samples_and_matches_a_dense_render() {
         let dense = Ball::new(None, false);
-        let (want, _) = colors(
+        let (want, _) = colours(
             &dense,
             RenderOptions {
                 march: MarchOptions { steps: 2048, stratified: false },
@@ -912,7 +912,7 @@ mod tests {
         );
         let h = Hierarchical { coarse_samples: 32, fine_samples: 64 };
         let field = Ball::new(Some(h), false);
-        let (got, _) = colors(
+        let (got, _) = colours(
             &field,
             RenderOptions {
                 march: MarchOptions { steps: 8, stratified: false },
@@ -941,7 +941,7 @@ mod tests {
         };
         let r = render(&field, ctx, &rays, options, true, &mut rng);
         let coarse = r.coarse.expect("proposal pass with record");
-        assert_eq!(coarse.colors.len(), rays.len());
+        assert_eq!(coarse.colours.len(), rays.len());
         let marched = (0..rays.len()).filter(|&i| !coarse.samples.range(i).is_empty()).count();
         assert_eq!(r.samples.len(), coarse.samples.len() + marched * 64);
         for ray in 0..rays.len() {

@@ -57,7 +57,7 @@ pub struct RenderedLogits {
     /// Rendered colour.
     pub rgb: RgbImage,
     /// Rendered distance per pixel as `masks.depth` chooses it (by default the visible
-    /// surface, [`crate::render::composite::RayColor::median_depth`]), `EMPTY_RAY_DEPTH` for
+    /// surface, [`crate::render::composite::RayColour::median_depth`]), `EMPTY_RAY_DEPTH` for
     /// empty rays; row-major.
     pub depth: Vec<f32>,
     /// Composited raw logits, `[H·W, channels]` row-major.
@@ -78,7 +78,7 @@ pub fn render_logits(session: &Session, head: &SegHead, camera: &Camera) -> Rend
     // (the head was never evaluated below it). That is also a few samples per ray instead of
     // every candidate; the colour still composites every sample.
     let extra = ExtraChannels { dim: d, min_weight: session.config.segment.weight_threshold, eval: &eval };
-    let (colors, logits) = render_inference(
+    let (colours, logits) = render_inference(
         field,
         session.render_context(),
         &rays,
@@ -87,9 +87,9 @@ pub fn render_logits(session: &Session, head: &SegHead, camera: &Camera) -> Rend
         Some(&extra),
     );
     let mut rgb = RgbImage::new(camera.width as usize, camera.height as usize);
-    let mut depth = Vec::with_capacity(colors.len());
-    let mut points = Vec::with_capacity(colors.len());
-    for (i, c) in colors.iter().enumerate() {
+    let mut depth = Vec::with_capacity(colours.len());
+    let mut points = Vec::with_capacity(colours.len());
+    for (i, c) in colours.iter().enumerate() {
         rgb.data[i * 3..i * 3 + 3].copy_from_slice(&c.rgb);
         let d = match session.config.masks.depth {
             MaskDepth::Median => c.median_depth,

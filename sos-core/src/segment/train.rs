@@ -9,7 +9,7 @@ use crate::config::LossEntry;
 use crate::error::{BuildError, RunError};
 use crate::image::RgbImage;
 use crate::plugin::{ContrastiveLoss, FeatureMap, PairMiner, PatchBatch};
-use crate::render::composite::{is_hit, RayColor, RayGrad};
+use crate::render::composite::{is_hit, RayColour, RayGrad};
 use crate::render::rays::RayBatch;
 use crate::render::renderer::{RenderTiming, Rendered};
 use crate::segment::defaults;
@@ -187,7 +187,7 @@ pub fn train_segmentation_observed(
         stats.samples_per_ray = r.samples.len() as f64 / rays.len() as f64;
         let targets = joint.then(|| captured_targets(session, &patches));
         if let Some(targets) = &targets {
-            let photometric = patch_mse(&r.colors, targets);
+            let photometric = patch_mse(&r.colours, targets);
             stats.total += cfg.photometric_weight as f64 * photometric;
             stats.terms.push(("photometric".into(), photometric));
         }
@@ -295,7 +295,7 @@ fn composite(session: &Session, seg: &mut Segmenter, r: &Rendered, rays: &RayBat
     let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
     let sample_logits = seg.frozen.head_forward(session, &seg.head, head_samples);
     let logits = layout.to_patches(&r.composite_values(&sample_logits, d_seg, |_| true), d_seg);
-    let mut depth: Vec<f32> = r.colors.iter().map(|c| c.depth).collect();
+    let mut depth: Vec<f32> = r.colours.iter().map(|c| c.depth).collect();
     fill_empty_depths(&mut depth);
     let ray_points: Vec<f32> = (0..rays.len())
         .flat_map(|ray| {
@@ -305,7 +305,7 @@ fn composite(session: &Session, seg: &mut Segmenter, r: &Rendered, rays: &RayBat
         })
         .collect();
     let points = layout.to_patches(&ray_points, 3);
-    let images = patch_images(&r.colors, layout.side);
+    let images = patch_images(&r.colours, layout.side);
     Composited { sample_logits, logits, points, images }
 }
 
@@ -367,14 +367,14 @@ struct JointStep<'a> {
 
 impl JointStep<'_> {
     fn step(&self, session: &mut Session, r: &mut Rendered, sample_logits: &[f32], ray_grad: &[f32]) {
-        let n_rays = r.colors.len();
+        let n_rays = r.colours.len();
         let d_seg = ray_grad.len() / n_rays.max(1);
         let scale = 2.0 * self.weight / (n_rays * 3) as f32;
         let grads: Vec<RayGrad> = (0..n_rays)
             .map(|ray| {
                 let mut g = RayGrad { extra: &ray_grad[ray * d_seg..(ray + 1) * d_seg], ..Default::default() };
                 for k in 0..3 {
-                    g.rgb[k] = scale * (r.colors[ray].rgb[k] - self.targets[ray][k]);
+                    g.rgb[k] = scale * (r.colours[ray].rgb[k] - self.targets[ray][k]);
                 }
                 g
             })
@@ -387,8 +387,8 @@ impl JointStep<'_> {
 }
 
 /// Rendered colours of `p x p` patches, patch after patch, as images.
-fn patch_images(colors: &[RayColor], p: usize) -> Vec<RgbImage> {
-    colors
+fn patch_images(colours: &[RayColour], p: usize) -> Vec<RgbImage> {
+    colours
         .chunks(p * p)
         .map(|patch| {
             let mut img = RgbImage::new(p, p);
@@ -407,7 +407,7 @@ pub fn render_patches(session: &Session, patches: &[Patch]) -> Vec<RgbImage> {
     // Evaluation marching is not stratified: the generator does not change the result.
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed);
     let r = FrozenRender::new(session.render_options(false).memory).render(session, &rays, false, false, &mut rng);
-    patch_images(&r.colors, session.config.segment.patch_size as usize)
+    patch_images(&r.colours, session.config.segment.patch_size as usize)
 }
 
 /// The photographs' colours at each patch ray, patch after patch.
@@ -421,10 +421,10 @@ fn captured_targets(session: &Session, patches: &[Patch]) -> Vec<[f32; 3]> {
         .collect()
 }
 
-fn patch_mse(colors: &[RayColor], targets: &[[f32; 3]]) -> f64 {
+fn patch_mse(colours: &[RayColour], targets: &[[f32; 3]]) -> f64 {
     let sum: f64 =
-        colors.iter().zip(targets).map(|(c, t)| (0..3).map(|k| ((c.rgb[k] - t[k]) as f64).powi(2)).sum::<f64>()).sum();
-    sum / (colors.len() * 3).max(1) as f64
+        colours.iter().zip(targets).map(|(c, t)| (0..3).map(|k| ((c.rgb[k] - t[k]) as f64).powi(2)).sum::<f64>()).sum();
+    sum / (colours.len() * 3).max(1) as f64
 }
 
 #[cfg(test)]

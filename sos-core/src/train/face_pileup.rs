@@ -47,7 +47,7 @@ impl FaceMonitor {
             *v *= FORGET;
         }
         for (ray, target) in targets.iter().enumerate() {
-            let colour = r.colors[ray];
+            let colour = r.colours[ray];
             let range = r.samples.range(ray);
             let at_face: f32 = range
                 .clone()
@@ -102,7 +102,7 @@ pub fn face_pileup_warning(figures: &FaceFigures) -> Option<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::composite::RayColor;
+    use crate::render::composite::RayColour;
     use crate::render::sampler::Samples;
 
     /// One sample per ray at `positions[ray]` with weight 1, rendering `colours[ray]`.
@@ -121,7 +121,7 @@ mod tests {
             density: vec![1.0; n],
             rgb: colours.to_vec(),
             weights: vec![1.0; n],
-            colors: colours.iter().map(|&rgb| RayColor { rgb, depth: 1.0, acc: 1.0, median_depth: 1.0 }).collect(),
+            colours: colours.iter().map(|&rgb| RayColour { rgb, depth: 1.0, acc: 1.0, median_depth: 1.0 }).collect(),
             tape: None,
             n_candidates: n,
             coarse: None,

@@ -6,7 +6,7 @@ use rand::{Rng, SeedableRng};
 
 use crate::error::RunError;
 use crate::plugin::field::plain;
-use crate::render::composite::{RayColor, RayGrad};
+use crate::render::composite::{RayColour, RayGrad};
 use crate::render::rays::RayBatch;
 use crate::render::renderer::{render, RenderTiming};
 use crate::train::face_pileup::{face_pileup_warning, FaceFigures, FaceMonitor};
@@ -56,13 +56,13 @@ pub struct Stage1Timing {
 /// MSE over a batch's rays and the per-ray gradients (`scale · (c − target)` per channel), with
 /// direct per-sample weight gradients from `weight_grads(ray)`.
 fn ray_mse_grads<'a>(
-    colors: &[RayColor],
+    colours: &[RayColour],
     targets: &[[f32; 3]],
     scale: f32,
     weight_grads: impl Fn(usize) -> &'a [f32],
 ) -> (f64, Vec<RayGrad<'a>>) {
     let mut mse = 0.0f64;
-    let grads = colors
+    let grads = colours
         .iter()
         .zip(targets)
         .enumerate()
@@ -76,7 +76,7 @@ fn ray_mse_grads<'a>(
             g
         })
         .collect();
-    (mse / (colors.len() * 3).max(1) as f64, grads)
+    (mse / (colours.len() * 3).max(1) as f64, grads)
 }
 
 /// Whether per-sample gradients are all finite.
@@ -86,8 +86,8 @@ fn all_finite(g_sigma: &[f32], g_rgb: &[[f32; 3]]) -> bool {
 
 /// Which rays of a batch rendered non-finite colours: a count and the first few as
 /// `view:col,row`.
-fn describe_bad_rays(fine: &[RayColor], coarse: Option<&[RayColor]>, pixels: &[(usize, u32, u32)]) -> String {
-    let bad = |c: &RayColor| !(c.rgb.iter().all(|v| v.is_finite()) && c.acc.is_finite());
+fn describe_bad_rays(fine: &[RayColour], coarse: Option<&[RayColour]>, pixels: &[(usize, u32, u32)]) -> String {
+    let bad = |c: &RayColour| !(c.rgb.iter().all(|v| v.is_finite()) && c.acc.is_finite());
     let idx: Vec<usize> = (0..pixels.len()).filter(|&i| bad(&fine[i]) || coarse.is_some_and(|c| bad(&c[i]))).collect();
     let first: Vec<String> =
         idx.iter().take(8).map(|&i| format!("{}:{},{}", pixels[i].0, pixels[i].1, pixels[i].2)).collect();
@@ -147,7 +147,7 @@ pub fn train_photometric_observed(
         let scale = 2.0 / (n_rays * 3) as f32;
         // DVGO's per-sample colour loss λ/N Σ_k w_k ‖c_k − C‖²: fog of the wrong colour is
         // penalised directly, which carves empty space much faster than the ray loss alone.
-        let lambda = session.config.train.sample_color_weight / n_rays as f32;
+        let lambda = session.config.train.sample_colour_weight / n_rays as f32;
         let mut g_weight = vec![0.0f32; r.samples.len()];
         let mut g_rgb_direct = vec![[0.0f32; 3]; if lambda > 0.0 { r.samples.len() } else { 0 }];
         if lambda > 0.0 {
@@ -180,10 +180,10 @@ pub fn train_photometric_observed(
         if session.step.is_multiple_of(FACE_CHECK_EVERY) {
             faces.observe(&session.contraction, &r, &targets);
         }
-        let (mse, grads) = ray_mse_grads(&r.colors, &targets, scale, |ray| &g_weight[r.samples.range(ray)]);
+        let (mse, grads) = ray_mse_grads(&r.colours, &targets, scale, |ray| &g_weight[r.samples.range(ray)]);
         // The coarse (proposal) network of a hierarchical field gets its own MSE, as in NeRF.
         let (coarse_mse, coarse_grads) = match &coarse {
-            Some(c) => ray_mse_grads(&c.colors, &targets, scale, |_| &[]),
+            Some(c) => ray_mse_grads(&c.colours, &targets, scale, |_| &[]),
             None => (0.0, Vec::new()),
         };
         let mut finite = mse.is_finite() && coarse_mse.is_finite();
@@ -221,7 +221,7 @@ pub fn train_photometric_observed(
             observer.message(Severity::Warning, &format!(
                 "stage 1 step {}: non-finite loss or gradient (mse {mse}, coarse mse {coarse_mse}), step skipped; batch: {}",
                 session.step,
-                describe_bad_rays(&r.colors, coarse.as_ref().map(|c| &c.colors[..]), &pixels)
+                describe_bad_rays(&r.colours, coarse.as_ref().map(|c| &c.colours[..]), &pixels)
             ));
             if bad_steps >= MAX_BAD_STEPS {
                 return Err(RunError::Diverged(format!(
@@ -251,7 +251,7 @@ pub fn train_photometric_observed(
             mse,
             psnr: crate::metrics::psnr_from_mse(mse),
             samples_per_ray: r.samples.len() as f64 / n_rays as f64,
-            opacity: r.colors.iter().map(|c| c.acc as f64).sum::<f64>() / n_rays as f64,
+            opacity: r.colours.iter().map(|c| c.acc as f64).sum::<f64>() / n_rays as f64,
             faces: faces.figures(),
             timing,
         };

@@ -222,7 +222,7 @@ impl Session {
     /// Renders a whole view: colour and the reference-style depth `Σ w t`.
     pub fn render_view(&self, camera: &Camera) -> (RgbImage, Vec<f32>) {
         let rays = RayBatch::full_image(camera);
-        let (colors, _) = render_inference(
+        let (colours, _) = render_inference(
             self.field.as_ref(),
             self.render_context(),
             &rays,
@@ -231,9 +231,9 @@ impl Session {
             None,
         );
         let mut img = RgbImage::new(camera.width as usize, camera.height as usize);
-        for (i, c) in colors.iter().enumerate() {
+        for (i, c) in colours.iter().enumerate() {
             img.data[i * 3..i * 3 + 3].copy_from_slice(&c.rgb);
         }
-        (img, colors.iter().map(|c| c.depth).collect())
+        (img, colours.iter().map(|c| c.depth).collect())
     }
 }
