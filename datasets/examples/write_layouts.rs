@@ -1,7 +1,7 @@
 //! Writes the synthetic scene in every dataset layout, with masks, and reopens each to check it:
 //! `cargo run --release -p sos-datasets --example write_layouts -- [OUT_DIR] [RIG] [WxH] [VIEWS]`.
 //!
-//! `OUT_DIR` defaults to `runs/layouts` (where `configs/synthetic_<format>.toml` look), `RIG`
+//! `OUT_DIR` defaults to `runs/layouts` (a config with `[scene] kind` and `path` reads each), `RIG`
 //! to `object-centric` (or `forward-facing`, which the NSVF layout cannot hold). By default the
 //! scene is the default `synthetic` one (400x300, 40 views, every 8th held out, seed 0), as in
 //! `configs/synthetic.toml`, so a run on any layout can be compared with a run on the

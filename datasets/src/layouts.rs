@@ -68,6 +68,18 @@ impl Format {
         }
     }
 
+    /// The dataset kind (`[scene] kind`) whose adapter reads the layout.
+    pub fn kind(self) -> &'static str {
+        match self {
+            Format::Llff => "llff",
+            Format::Blender => "blender",
+            Format::ColmapBin | Format::ColmapTxt => "colmap",
+            Format::BlendedMvs | Format::Nsvf => "blendedmvs",
+            Format::Co3d => "co3d",
+            Format::TanksTemples => "tanks-temples",
+        }
+    }
+
     /// Whether the layout stores the train/test split itself (the others hold out every 8th
     /// view, which matches the generator's default split).
     pub fn stores_split(self) -> bool {

@@ -383,27 +383,20 @@ fn llff_flower_poses_match_the_reference_loader() {
     assert!(geo.sphere_path.is_none());
 }
 
-/// `configs/synthetic_<format>.toml` load the layouts that the `write_layouts` example writes
-/// to `runs/layouts/` (here a small scene written to the same relative place in a temporary
-/// tree), with the generator's box where the layout has no bounds.
+/// Each layout written by the `write_layouts` example opens with only `[scene] kind` and
+/// `path` set, as a user's config names it.
 #[test]
-fn synthetic_layout_configs_load_the_written_layouts() {
-    let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let tmp = temp_dir("configs");
+fn every_layout_opens_from_kind_and_path_alone() {
+    let tmp = temp_dir("bare-configs");
     let s = scene(Rig::ObjectCentric);
     for f in Format::ALL {
-        f.write(&s, &tmp.join("runs/layouts").join(f.name())).unwrap();
-    }
-    let config_dir = tmp.join("configs");
-    std::fs::create_dir_all(&config_dir).unwrap();
-    for f in Format::ALL {
-        let file = repo.join(format!("configs/synthetic_{}.toml", f.name()));
-        let text = std::fs::read_to_string(&file).unwrap_or_else(|e| panic!("{}: {e}", file.display()));
-        let doc: toml::Table = toml::from_str(&text).unwrap();
-        let table = doc["scene"].clone();
+        let dir = tmp.join(f.name());
+        f.write(&s, &dir).unwrap();
+        let text = format!("kind = \"{}\"\npath = \"{}\"\n", f.kind(), f.scene_dir(&dir).display());
+        let table: toml::Table = toml::from_str(&text).unwrap();
         let cfg: Box<dyn sos_core::plugin::dataset::DatasetConfig> =
-            table.try_into().unwrap_or_else(|e| panic!("{}: {e}", file.display()));
-        let loaded = cfg.open(&config_dir).unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+            table.try_into().unwrap_or_else(|e| panic!("{}: {e}", f.name()));
+        let loaded = cfg.open(&tmp).unwrap_or_else(|e| panic!("{}: {e}", f.name()));
         assert_same_views_up_to_frame(&s, &loaded, f);
     }
     std::fs::remove_dir_all(tmp).ok();
@@ -419,7 +412,7 @@ fn assert_same_views_up_to_frame(original: &Scene, loaded: &Scene, f: Format) {
             assert_eq!(loaded.test.len(), original.test.len(), "{f:?}");
             assert!(matches!(loaded.extent, SceneExtent::Unbounded { radius, .. } if radius == 1.0), "{f:?}");
         }
-        // The configs set no bounds: every layout gets the unbounded extent around the
+        // No bounds are set: every layout gets the unbounded extent around the
         // cameras' focus, whose foreground sphere holds the object.
         _ => {
             assert_same_views(original, loaded, f.name());

@@ -12,7 +12,8 @@
 //! set = { "train.steps" = 300 }                   # overrides by dotted path
 //!
 //! [scenes.llff-layout]
-//! config = "../configs/synthetic_llff.toml"
+//! config = "bare.toml"                         # only `[scene] kind`
+//! set = { scene = { kind = "llff" } }
 //! generate = { layout = "llff", width = 100, height = 75, views = 24 }
 //!
 //! [methods.default]
