@@ -1,28 +1,35 @@
 //! One stage-1 step of the `nerf` field at the reference's sizes (1024 rays, 64 coarse + 128
 //! importance samples, 8 x 256 trunks, separate coarse and fine networks, no skipping), and
-//! the dense-layer throughput of that step against bare `gemm` calls on the same shapes, timed
-//! alternately in the same run.
+//! the dense-layer throughput of that step against bare GEMMs on the same shapes, in one run.
 //!
 //! The step is the real one: the renderer's hierarchical pass, compositing, MSE on coarse and
 //! fine colours, compositing backward, both networks' backward passes and Adam. Each network's
 //! forward, backward and Adam step are timed by a wrapper; their GEMM work is counted from the
-//! actual sample counts. The bare baseline replays every GEMM of those passes (same m, n, k,
-//! same transposes) through `gemm` directly, once with the full batch as rows and once in the
-//! networks' row blocks, and the faster of the two is the reference rate.
+//! actual sample counts (fixed by one step before the group). Group `nerf_step`:
+//! - `networks`: real stage-1 steps, of which criterion is given the time spent in the two
+//!   networks (forward, backward, Adam);
+//! - `bare_full_batch`, `bare_row_blocks`: every GEMM of those passes (same m, n, k, same
+//!   transposes) replayed through [`sos_core::nn::matmul`] alone, once with the full batch as
+//!   rows and once in the networks' row blocks; the faster of the two is the reference rate.
 //!
-//! `cargo run --release -p sos-benchmarks --bin nerf_step [repeats]`; threads: `RAYON_NUM_THREADS`
-//! (default 2).
+//! Criterion's throughput is the networks' GEMM flops per step (elements per second). After the
+//! group a summary prints the samples per ray, the whole step's time and its parts (medians and
+//! means over the steps the `networks` benchmark ran), GFLOP/s of each benchmark and the ratio
+//! networks / best bare throughput.
+//!
+//! `cargo bench -p sos-benchmarks --bench nerf_step`; threads: `RAYON_NUM_THREADS` (default 2).
 
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
-use gemm::Parallelism;
+use criterion::{criterion_group, criterion_main, Criterion, SamplingMode, Throughput};
 use rand::{Rng, SeedableRng};
+use sos_benchmarks::{median, GroupResults};
 use sos_core::camera::Vec3;
 use sos_core::config::RunConfig;
-use sos_core::nn::Linear;
+use sos_core::nn::{matmul, Linear, MatRef};
 use sos_core::plugin::field::{Hierarchical, HierarchicalSampling};
 use sos_core::plugin::{FieldTape, RadianceField};
 use sos_core::render::composite::{RayColour, RayGrad};
@@ -209,20 +216,29 @@ impl HierarchicalSampling for Pair {
     }
 }
 
-/// One GEMM `[m, k] · [k, n]` with operand (column, row) strides and whether it accumulates.
+/// One GEMM `[m, k] · [k, n]`, each operand stored row-major and possibly used transposed,
+/// and whether it accumulates into the destination.
 #[derive(Clone, Copy)]
 struct Gemm {
     m: usize,
     n: usize,
     k: usize,
-    lhs: (usize, usize),
-    rhs: (usize, usize),
+    lhs_t: bool,
+    rhs_t: bool,
     accumulate: bool,
 }
 
 impl Gemm {
     fn flops(&self) -> f64 {
         2.0 * (self.m * self.n * self.k) as f64
+    }
+
+    /// Runs the product on the leading values of scratch buffers.
+    fn run(&self, dst: &mut [f32], lhs: &[f32], rhs: &[f32]) {
+        let Gemm { m, n, k, .. } = *self;
+        let a = if self.lhs_t { MatRef::new(&lhs[..k * m], k, m).t() } else { MatRef::new(&lhs[..m * k], m, k) };
+        let b = if self.rhs_t { MatRef::new(&rhs[..n * k], n, k).t() } else { MatRef::new(&rhs[..k * n], k, n) };
+        matmul(a, b, &mut dst[..m * n], self.accumulate);
     }
 }
 
@@ -252,63 +268,24 @@ fn network_gemms(mlp: &NerfMlp, rows: usize) -> Vec<Gemm> {
         let o = layer.out_dim;
         for (&i, &dx) in blocks.iter().zip(&need_dx) {
             // y[rows, o] (+)= x[rows, i] · W[i, o]
-            out.push(Gemm { m: rows, n: o, k: i, lhs: (1, i), rhs: (1, o), accumulate: false });
+            out.push(Gemm { m: rows, n: o, k: i, lhs_t: false, rhs_t: false, accumulate: false });
             // ∂W[i, o] += xᵀ · g
-            out.push(Gemm { m: i, n: o, k: rows, lhs: (i, 1), rhs: (1, o), accumulate: true });
+            out.push(Gemm { m: i, n: o, k: rows, lhs_t: true, rhs_t: false, accumulate: true });
             if dx {
                 // ∂x[rows, i] = g · Wᵀ
-                out.push(Gemm { m: rows, n: i, k: o, lhs: (1, o), rhs: (o, 1), accumulate: false });
+                out.push(Gemm { m: rows, n: i, k: o, lhs_t: false, rhs_t: true, accumulate: false });
             }
         }
     }
     out
 }
 
-#[allow(unsafe_code)]
-fn bare(g: &Gemm, dst: &mut [f32], lhs: &[f32], rhs: &[f32]) {
-    assert!(dst.len() >= g.m * g.n);
-    assert!((g.m - 1) * g.lhs.1 + (g.k - 1) * g.lhs.0 < lhs.len());
-    assert!((g.k - 1) * g.rhs.1 + (g.n - 1) * g.rhs.0 < rhs.len());
-    // SAFETY: the asserts bound every element gemm reads in `lhs` and `rhs`; `dst` is a
-    // distinct `&mut` slice written densely row-major (strides 1, n).
-    unsafe {
-        gemm::gemm(
-            g.m,
-            g.n,
-            g.k,
-            dst.as_mut_ptr(),
-            1,
-            g.n as isize,
-            g.accumulate,
-            lhs.as_ptr(),
-            g.lhs.0 as isize,
-            g.lhs.1 as isize,
-            rhs.as_ptr(),
-            g.rhs.0 as isize,
-            g.rhs.1 as isize,
-            1.0,
-            1.0,
-            false,
-            false,
-            false,
-            Parallelism::Rayon(0),
-        );
-    }
-}
-
-/// Runs a list of GEMMs on scratch buffers; returns seconds.
-fn run_bare(gemms: &[Gemm], scratch: &mut [Vec<f32>; 3]) -> f64 {
-    let t = Instant::now();
+/// Runs a list of GEMMs on scratch buffers.
+fn run_bare(gemms: &[Gemm], scratch: &mut [Vec<f32>; 3]) {
+    let [dst, lhs, rhs] = scratch;
     for g in gemms {
-        let [dst, lhs, rhs] = scratch;
-        bare(g, dst, lhs, rhs);
+        g.run(dst, lhs, rhs);
     }
-    t.elapsed().as_secs_f64()
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
 }
 
 /// The same GEMMs split into the networks' row blocks.
@@ -323,13 +300,21 @@ fn blocked(mlp: &NerfMlp, rows: usize) -> Vec<Gemm> {
     out
 }
 
-fn main() {
-    sos_benchmarks::allocate_like_sos();
-    let repeats: usize = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(3);
-    let threads = std::env::var("RAYON_NUM_THREADS").ok().and_then(|s| s.parse().ok()).unwrap_or(2);
-    rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().expect("rayon pool");
+/// What the steps of the `networks` benchmark measured besides the networks' time.
+#[derive(Default)]
+struct StepLog {
+    /// Seconds of each whole step.
+    seconds: Vec<f64>,
+    /// Sums over the steps of (forward, backward, Adam) seconds, fine then coarse network.
+    parts: [f64; 6],
+    /// Fine MSE of each step.
+    mse: Vec<f64>,
+}
+
+fn bench(c: &mut Criterion) {
+    let threads = sos_benchmarks::setup();
     let config = RunConfig::parse(CONFIG, Path::new("nerf_step.toml")).expect("built-in config parses");
-    let dir = std::env::temp_dir().join("sos-nerf-step");
+    let dir = std::env::temp_dir().join(format!("sos-nerf-step-{}", std::process::id()));
     let mut session = Session::from_config(config, &dir).expect("synthetic scene builds");
     let nerf = NerfConfig::default();
     let contraction = Contraction::new(&session.scene.extent);
@@ -350,7 +335,7 @@ fn main() {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
 
     // One real stage-1 step; returns (seconds, fine MSE).
-    let mut step = |session: &mut Session| -> (f64, f64) {
+    let mut step = move |session: &mut Session| -> (f64, f64) {
         let t0 = Instant::now();
         let mut rays = RayBatch::default();
         let mut targets = Vec::new();
@@ -395,7 +380,8 @@ fn main() {
         (t0.elapsed().as_secs_f64(), mse / (n_rays * 3) as f64)
     };
 
-    // Warm-up (also fixes the sample counts: every ray crosses the room, so they are constant).
+    // Warm-up, which also fixes the sample counts: every ray crosses the room, so they are
+    // constant.
     let (_, first_mse) = step(&mut session);
     fine_stats.take();
     coarse_stats.take();
@@ -407,43 +393,69 @@ fn main() {
     let flops: f64 = full.iter().map(Gemm::flops).sum();
     let biggest = n_fine.max(n_coarse) * 512;
     let mut scratch = [vec![0.01f32; biggest], vec![0.02f32; biggest], vec![0.03f32; biggest]];
-    run_bare(&full, &mut scratch);
-    run_bare(&blocks, &mut scratch);
+    let mut log = StepLog::default();
 
-    let (mut t_step, mut t_dense, mut t_full, mut t_blocks) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-    let mut parts = [0.0f64; 6];
-    let mut last_mse = first_mse;
-    for _ in 0..repeats {
-        let (t, mse) = step(&mut session);
-        last_mse = mse;
-        let (f, c) = (fine_stats.take(), coarse_stats.take());
-        for k in 0..3 {
-            parts[k] += f[k] / repeats as f64;
-            parts[3 + k] += c[k] / repeats as f64;
-        }
-        t_step.push(t);
-        t_dense.push(f.iter().sum::<f64>() + c.iter().sum::<f64>());
-        t_full.push(run_bare(&full, &mut scratch));
-        t_blocks.push(run_bare(&blocks, &mut scratch));
-    }
-    let (step_s, dense_s, full_s, blocks_s) = (median(t_step), median(t_dense), median(t_full), median(t_blocks));
-    let bare_s = full_s.min(blocks_s);
+    let results = GroupResults::new("nerf_step");
+    let mut group = c.benchmark_group("nerf_step");
+    group.sampling_mode(SamplingMode::Flat).throughput(Throughput::Elements(flops as u64));
+    group.bench_function("networks", |b| {
+        b.iter_custom(|iters| {
+            let mut networks = 0.0;
+            for _ in 0..iters {
+                let (seconds, mse) = step(&mut session);
+                let (f, c) = (fine_stats.take(), coarse_stats.take());
+                for k in 0..3 {
+                    log.parts[k] += f[k];
+                    log.parts[3 + k] += c[k];
+                }
+                networks += f.iter().sum::<f64>() + c.iter().sum::<f64>();
+                log.seconds.push(seconds);
+                log.mse.push(mse);
+            }
+            Duration::from_secs_f64(networks)
+        })
+    });
+    group.bench_function("bare_full_batch", |b| b.iter(|| run_bare(&full, &mut scratch)));
+    group.bench_function("bare_row_blocks", |b| b.iter(|| run_bare(&blocks, &mut scratch)));
+    group.finish();
+
+    let (c_s, f_s) = (nerf.coarse_samples, nerf.fine_samples);
     println!(
-        "nerf_step: {n_rays} rays, {} coarse + {} importance samples, 2 x NeRF MLP (8x256, skip 5, view 128), {threads} rayon threads, median of {repeats} after 1 warm-up",
-        64, 128
+        "nerf_step: {n_rays} rays, {c_s} coarse + {f_s} importance samples, 2 x NeRF MLP (8x256, skip 5, view 128), {threads} rayon threads"
     );
     println!(
         "samples: fine {n_fine} ({:.0}/ray), coarse {n_coarse} ({:.0}/ray)",
         n_fine as f64 / n_rays as f64,
         n_coarse as f64 / n_rays as f64
     );
-    println!("full stage-1 step: {:.2} s", step_s);
-    println!("  fine  forward {:.2} s  backward {:.2} s  adam {:.3} s", parts[0], parts[1], parts[2]);
-    println!("  coarse forward {:.2} s  backward {:.2} s  adam {:.3} s", parts[3], parts[4], parts[5]);
+    if !log.seconds.is_empty() {
+        let steps = log.seconds.len();
+        let p = log.parts.map(|s| s / steps as f64);
+        println!("full stage-1 step: {:.2} s (median of {steps} steps)", median(&log.seconds));
+        println!("  fine   forward {:.2} s  backward {:.2} s  adam {:.3} s (means)", p[0], p[1], p[2]);
+        println!("  coarse forward {:.2} s  backward {:.2} s  adam {:.3} s (means)", p[3], p[4], p[5]);
+    }
     println!("GEMM work of the networks per step: {:.1} GFLOP", flops / 1e9);
-    println!("networks (fwd+bwd+adam): {:.2} s  {:.1} GFLOP/s", dense_s, flops / dense_s / 1e9);
-    println!("bare GEMMs, full batch : {:.2} s  {:.1} GFLOP/s", full_s, flops / full_s / 1e9);
-    println!("bare GEMMs, row blocks : {:.2} s  {:.1} GFLOP/s", blocks_s, flops / blocks_s / 1e9);
-    println!("ratio networks / best bare throughput: {:.1}%", 100.0 * bare_s / dense_s);
-    println!("(fine MSE {first_mse:.4} at the warm-up step, {last_mse:.4} at the last)");
+    let measured = ["networks", "bare_full_batch", "bare_row_blocks"].map(|f| results.median(f));
+    for (label, s) in
+        ["networks (fwd+bwd+adam)", "bare GEMMs, full batch ", "bare GEMMs, row blocks "].iter().zip(measured)
+    {
+        if let Some(s) = s {
+            println!("{label}: {s:.2} s  {:.1} GFLOP/s (criterion median)", flops / s / 1e9);
+        }
+    }
+    if let [Some(dense_s), Some(full_s), Some(blocks_s)] = measured {
+        println!("ratio networks / best bare throughput: {:.1}%", 100.0 * full_s.min(blocks_s) / dense_s);
+    }
+    if let Some(last_mse) = log.mse.last() {
+        println!("(fine MSE {first_mse:.4} at the warm-up step, {last_mse:.4} at the last)");
+    }
+    std::fs::remove_dir_all(&dir).ok();
 }
+
+criterion_group! {
+    name = benches;
+    config = sos_benchmarks::criterion(10, 1.0, 20.0);
+    targets = bench
+}
+criterion_main!(benches);

@@ -4,7 +4,7 @@
 //! (−1 where there is none), as little-endian f32 rows of `channels + 1 + 3 + 1` values;
 //! `<out>/meta.json` gives the sizes, the focus point and the channel count.
 //!
-//! `cargo run --release -p sos-benchmarks --bin dump_logits -- CONFIG CHECKPOINT OUT_DIR`
+//! `cargo run --release --manifest-path experiments/Cargo.toml --bin dump_logits -- CONFIG CHECKPOINT OUT_DIR`
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -15,7 +15,7 @@ use sos_core::train::Session;
 use sos_plugins as _;
 
 fn main() {
-    sos_benchmarks::allocate_like_sos();
+    sos_benchmarks::setup();
     let args: Vec<String> = std::env::args().skip(1).collect();
     let [config, checkpoint, out] = &args[..] else {
         eprintln!("usage: dump_logits CONFIG CHECKPOINT OUT_DIR");

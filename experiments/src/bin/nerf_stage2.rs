@@ -1,8 +1,8 @@
 //! Stage-2 steps of the `nerf` field (reference sizes) with and without skipping, from a
 //! stage-1 checkpoint of `configs/nerf_synthetic_small.toml` (the default) or one that
-//! `nerf_distill` made for the same scene.
+//! `nerf_distill` (`sos-tools`) made for the same scene.
 //!
-//! `cargo run --release -p sos-benchmarks --bin nerf_stage2 -- speed [checkpoint] [steps]`
+//! `cargo run --release --manifest-path experiments/Cargo.toml --bin nerf_stage2 -- speed [checkpoint] [steps]`
 //! times real stage-2 steps (`train_segmentation`: render, head, teacher, losses, backward)
 //! of 8 patches of 64x64 rays in these modes:
 //! - `all-skips`: occupancy grid baked from the frozen density (128³, one cell of margin),
@@ -112,20 +112,13 @@ foreground = "focus"
     )
 }
 
-/// Process CPU seconds (user + system) from `/proc/self/stat`; 0 where unavailable.
+/// Process CPU seconds (user + system); 0 where unavailable.
 fn cpu_seconds() -> f64 {
-    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else { return 0.0 };
-    // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
-    let rest = stat.rsplit(')').next().unwrap_or("");
-    let fields: Vec<&str> = rest.split_whitespace().collect();
-    let ticks = |i: usize| fields.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
-    (ticks(11) + ticks(12)) / 100.0
+    sos_benchmarks::process_cpu_seconds().unwrap_or(0.0)
 }
 
 fn load_average() -> String {
-    std::fs::read_to_string("/proc/loadavg")
-        .map(|s| s.split_whitespace().next().unwrap_or("?").to_string())
-        .unwrap_or_default()
+    sos_benchmarks::load_average().map_or_else(|| "?".to_string(), |l| l.to_string())
 }
 
 fn open(mode: &Mode, steps: usize, checkpoint: &Path) -> Session {
@@ -538,14 +531,12 @@ fn weight_spread(checkpoint: &Path) {
 }
 
 fn main() {
-    sos_benchmarks::allocate_like_sos();
+    sos_benchmarks::setup();
     let args: Vec<String> = std::env::args().collect();
     let what = args.get(1).map(String::as_str).unwrap_or("speed");
     let checkpoint =
         args.get(2).map(PathBuf::from).unwrap_or_else(|| PathBuf::from("runs/nerf-synthetic-small/checkpoint.bin"));
     let steps: Option<usize> = args.get(3).and_then(|s| s.parse().ok());
-    let threads = std::env::var("RAYON_NUM_THREADS").ok().and_then(|s| s.parse().ok()).unwrap_or(2);
-    rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().expect("rayon pool");
     match what {
         "speed" => speed(&checkpoint, steps.unwrap_or(2)),
         "quality" => quality(&checkpoint, steps.unwrap_or(100)),

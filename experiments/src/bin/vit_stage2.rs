@@ -2,7 +2,7 @@
 //! `cell-stats` teacher, with the teacher-feature cache and patch offsets on the default
 //! `segment.offset_grid`, for `teacher_source = "rendered"` and `"captured"`.
 //!
-//! `cargo run --release -p sos-benchmarks --bin vit_stage2 [STAGE1_STEPS] [TIMED_STEPS] [--run STEPS] [--miou STEPS]`
+//! `cargo run --release --manifest-path experiments/Cargo.toml --bin vit_stage2 [STAGE1_STEPS] [TIMED_STEPS] [--run STEPS] [--miou STEPS]`
 //! (defaults 600, 10 and a run of 300 steps, the default `segment.steps`). A short stage 1 on
 //! the built-in synthetic scene (400x300, 35 training views), then:
 //! - the cache hit rate of a stage-2 run of RUN steps (8 patches of 64x64 rays per step), over
@@ -226,9 +226,7 @@ fn option(args: &[String], flag: &str) -> Option<usize> {
 }
 
 fn main() {
-    sos_benchmarks::allocate_like_sos();
-    let threads: usize = std::env::var("RAYON_NUM_THREADS").ok().and_then(|s| s.parse().ok()).unwrap_or(2);
-    rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().expect("rayon pool");
+    let threads = sos_benchmarks::setup();
     let args: Vec<String> = std::env::args().skip(1).collect();
     let miou_steps = option(&args, "--miou");
     let run = option(&args, "--run").unwrap_or(SegmentConfig::default().steps).max(2);

@@ -7,11 +7,12 @@
 //! skipped. Regressing the networks onto the voxel grid's density and colour at random points
 //! (half uniform in the scene box, half near its surfaces) gives them a crisp geometry in
 //! minutes. The result is an ordinary `nerf` checkpoint (both networks), saved in the layout
-//! `sos` and `nerf_stage2` read.
+//! `sos` and the `nerf_stage2` study (`experiments/`) read.
 //!
-//! `cargo run --release -p sos-benchmarks --bin nerf_distill -- <voxel checkpoint> <out dir> [steps]`
+//! `cargo run --release -p sos-tools --bin nerf_distill -- <voxel checkpoint> <out dir> [steps]`
 //! where the voxel checkpoint comes from `configs/voxel_synthetic_small.toml` (the 160x120
-//! object-centric synthetic scene of `configs/nerf_synthetic_small.toml`).
+//! object-centric synthetic scene of `configs/nerf_synthetic_small.toml`). Threads:
+//! `RAYON_NUM_THREADS` (default 2).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -34,6 +35,10 @@ views = 40
 hold_out_every = 8
 "#;
 
+/// The same allocator as the `sos` binary: distillation allocates and frees large batches.
+#[global_allocator]
+static ALLOCATOR: sos::allocator::MiMalloc = sos::allocator::MiMalloc;
+
 /// Interval over which the density target is expressed as an opacity (the stage-2 candidate
 /// spacing of the small scene: its box diagonal over 192).
 const DELTA: f32 = 0.037;
@@ -48,14 +53,14 @@ fn session(field: &str, extra: &str, out: &Path) -> Session {
 }
 
 fn main() {
-    sos_benchmarks::allocate_like_sos();
+    sos::allocator::keep_freed_memory();
     let args: Vec<String> = std::env::args().collect();
     let (Some(teacher_ckpt), Some(out)) = (args.get(1), args.get(2)) else {
         eprintln!("usage: nerf_distill <voxel-grid checkpoint> <output dir> [steps]");
         std::process::exit(2);
     };
     let steps: usize = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(1500);
-    let threads = std::env::var("RAYON_NUM_THREADS").ok().and_then(|s| s.parse().ok()).unwrap_or(2);
+    let threads: usize = std::env::var("RAYON_NUM_THREADS").ok().and_then(|s| s.trim().parse().ok()).unwrap_or(2);
     rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().expect("rayon pool");
     let out = PathBuf::from(out);
 

@@ -1,7 +1,7 @@
 //! Writes the repository's compact copy of the ViT reference fixtures (what the parity tests
 //! of `sos-backbones` read in a clone without the shared folder).
 //!
-//! `cargo run --release -p sos-benchmarks --bin vit_fixture_pack [SHARED_FIXTURES] [REPO_FIXTURES]`
+//! `cargo run --release -p sos-tools --bin vit_fixture_pack [SHARED_FIXTURES] [REPO_FIXTURES]`
 //! (defaults `../shared/fixtures` and `fixtures`). Writes
 //! - `vit_tiny/weights.json`: every tensor of `vit_tiny/weights.safetensors`;
 //! - `vit_tiny/io.json`: the inputs and expected outputs of `vit_tiny/io.json`;

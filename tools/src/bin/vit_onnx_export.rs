@@ -1,6 +1,6 @@
 //! Writes a DINO ViT checkpoint as an ONNX model for the `onnx` extractor (no Python needed).
 //!
-//! `cargo run --release -p sos-benchmarks --bin vit_onnx_export WEIGHTS OUT.onnx [SIZE] [HEADS]`
+//! `cargo run --release -p sos-tools --bin vit_onnx_export WEIGHTS OUT.onnx [SIZE] [HEADS]`
 //!
 //! WEIGHTS is an official DINO `.pth` (or the state dict as `.safetensors`); SIZE the square
 //! input side (default 224); HEADS the attention heads (default width / 64, as every DINO ViT).

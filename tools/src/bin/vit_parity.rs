@@ -4,7 +4,7 @@
 //! with the `onnx` feature also runs each `model.onnx` under ONNX Runtime (224 px). Also
 //! checks that the repository's compact copy (`fixtures/vit_tiny*`) equals the reference.
 //!
-//! `cargo run --release -p sos-benchmarks [--features onnx] --bin vit_parity [FIXTURES_DIR] [REPO_FIXTURES]`
+//! `cargo run --release -p sos-tools [--features onnx] --bin vit_parity [FIXTURES_DIR] [REPO_FIXTURES]`
 //! (defaults `../shared/fixtures` and `fixtures`). Exit status 1 if any error exceeds 1e-4 or
 //! a file cannot be read.
 
