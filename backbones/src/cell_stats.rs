@@ -170,7 +170,7 @@ impl CellStatsConfig {
 sos_core::plugin_kind! {
     kind: "cell-stats",
     summary: "weight-free colour and texture statistics per cell (offline fallback for DINO)",
-    default: default_config,
+    default: || Box::new(CellStatsConfig::default()),
     impl FeatureExtractorConfig for CellStatsConfig {
         fn build(&self, _ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
             self.validate()?;
@@ -192,10 +192,6 @@ sos_core::plugin_kind! {
     }
 }
 
-fn default_config() -> Box<dyn FeatureExtractorConfig> {
-    Box::new(CellStatsConfig::default())
-}
-
 /// The `cell-stats` extractor; build it from a validated [`CellStatsConfig`].
 #[derive(Debug, Clone)]
 pub struct CellStats {
@@ -215,14 +211,7 @@ impl CellStats {
         let channels = self.config.channels();
         let (w, h) = (image.width, image.height);
         if w == 0 || h == 0 || image.data.len() != w * h * 3 {
-            return FeatureMap {
-                channels,
-                height: 1,
-                width: 1,
-                data: vec![0.0; channels],
-                cls: vec![0.0; channels],
-                saliency: Some(vec![0.0]),
-            };
+            return FeatureMap::zeros(channels, channels);
         }
         let cell = self.config.cell();
         // Floor division like a ViT's patch grid; smaller images get one cell over all of it.

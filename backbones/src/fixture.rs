@@ -80,12 +80,7 @@ impl F32Array {
     /// `float64` lists), requiring every value to be an `f32` (the ViT fixtures are; the
     /// tolerance of 1e-12 only absorbs JSON number parsing, which need not round exactly).
     pub fn from_reference_json(value: &serde_json::Value) -> Result<F32Array, String> {
-        let shape = value["shape"]
-            .as_array()
-            .ok_or("no `shape` list")?
-            .iter()
-            .map(|d| d.as_u64().map(|d| d as usize).ok_or("`shape` entries must be integers"))
-            .collect::<Result<Vec<_>, _>>()?;
+        let shape = shape_of(value)?;
         let data = value["data"]
             .as_array()
             .ok_or("no `data` list")?
@@ -100,33 +95,39 @@ impl F32Array {
                 }
             })
             .collect::<Result<Vec<_>, String>>()?;
-        let array = F32Array { shape, data };
-        if array.numel() != array.data.len() {
-            return Err(format!("shape {:?} needs {} values, found {}", array.shape, array.numel(), array.data.len()));
-        }
-        Ok(array)
+        F32Array::checked(shape, data)
     }
 
     /// Reads the JSON form; the error says what is malformed.
     pub fn from_json(value: &serde_json::Value) -> Result<F32Array, String> {
-        let shape = value["shape"]
-            .as_array()
-            .ok_or("no `shape` list")?
-            .iter()
-            .map(|d| d.as_u64().map(|d| d as usize).ok_or("`shape` entries must be integers"))
-            .collect::<Result<Vec<_>, _>>()?;
+        let shape = shape_of(value)?;
         let text = value["f32le"].as_str().ok_or("no `f32le` string")?;
         let bytes = base64_decode(text).ok_or("`f32le` is not valid base64")?;
         if bytes.len() % 4 != 0 {
             return Err("`f32le` length is not a multiple of 4 bytes".into());
         }
         let data: Vec<f32> = bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+        F32Array::checked(shape, data)
+    }
+
+    /// The array of `shape` and `data`, which must hold as many values as the shape.
+    fn checked(shape: Vec<usize>, data: Vec<f32>) -> Result<F32Array, String> {
         let array = F32Array { shape, data };
         if array.numel() != array.data.len() {
             return Err(format!("shape {:?} needs {} values, found {}", array.shape, array.numel(), array.data.len()));
         }
         Ok(array)
     }
+}
+
+/// The `shape` list of a JSON array (either form).
+fn shape_of(value: &serde_json::Value) -> Result<Vec<usize>, String> {
+    value["shape"]
+        .as_array()
+        .ok_or("no `shape` list")?
+        .iter()
+        .map(|d| d.as_u64().map(|d| d as usize).ok_or_else(|| "`shape` entries must be integers".to_string()))
+        .collect()
 }
 
 /// A compact fixture file: a `doc` string and named arrays (in a nested `arrays` table).

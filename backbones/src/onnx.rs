@@ -30,6 +30,7 @@ use sos_core::image::RgbImage;
 use sos_core::plugin::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};
 
 use crate::checkpoint::content_hash;
+use crate::dino_vit::patch_map;
 use crate::dino_vit::preprocess::{Preprocess, Resize, IMAGENET_MEAN, IMAGENET_STD};
 
 const KIND: &str = OnnxConfig::KIND;
@@ -244,7 +245,7 @@ impl OnnxConfig {
 sos_core::plugin_kind! {
     kind: "onnx",
     summary: "any exported backbone (.onnx) through ONNX Runtime, loaded at run time (ORT_DYLIB_PATH)",
-    default: default_config,
+    default: || Box::new(OnnxConfig::default()),
     impl FeatureExtractorConfig for OnnxConfig {
         fn build(&self, ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
             let resolved = OnnxConfig {
@@ -255,10 +256,6 @@ sos_core::plugin_kind! {
             Ok(Box::new(OnnxExtractor::new(resolved)?))
         }
     }
-}
-
-fn default_config() -> Box<dyn FeatureExtractorConfig> {
-    Box::new(OnnxConfig::default())
 }
 
 /// The `onnx` extractor.
@@ -324,17 +321,6 @@ impl OnnxExtractor {
         &self.model
     }
 
-    fn zero_map(channels: usize) -> FeatureMap {
-        FeatureMap {
-            channels,
-            height: 1,
-            width: 1,
-            data: vec![0.0; channels],
-            cls: vec![0.0; channels],
-            saliency: Some(vec![0.0]),
-        }
-    }
-
     /// Features of a batch of preprocessed `[3, s, s]` inputs.
     fn run_batch(&self, inputs: &[Vec<f32>]) -> Result<Vec<FeatureMap>, String> {
         let s = self.config.input_size;
@@ -368,14 +354,8 @@ impl OnnxExtractor {
                 let np = t.checked_sub(prefix).filter(|&np| np > 0).ok_or("fewer tokens than `prefix_tokens`")?;
                 let (h, w) = grid_of(np);
                 let x = &tokens.data[b * t * c..(b + 1) * t * c];
-                let mut data = vec![0.0f32; c * np];
-                for i in 0..np {
-                    for k in 0..*c {
-                        data[k * np + i] = x[(prefix + i) * c + k];
-                    }
-                }
                 let global = (prefix > 0).then(|| x[..*c].to_vec());
-                (*c, h, w, data, global)
+                (*c, h, w, patch_map(x, prefix, *c, np), global)
             }
             [_, c, h, w] => {
                 let len = c * h * w;
@@ -417,7 +397,7 @@ impl OnnxExtractor {
 /// A patch grid `(h, w)` with `h·w = n` for a square input: the most square factorisation.
 fn grid_of(n: usize) -> (usize, usize) {
     let mut h = (n as f64).sqrt() as usize;
-    while h > 1 && n % h != 0 {
+    while h > 1 && !n.is_multiple_of(h) {
         h -= 1;
     }
     (h.max(1), n / h.max(1))
@@ -425,12 +405,13 @@ fn grid_of(n: usize) -> (usize, usize) {
 
 impl FeatureExtractor for OnnxExtractor {
     fn extract(&self, images: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError> {
-        let valid = |img: &RgbImage| img.width > 0 && img.height > 0 && img.data.len() == img.width * img.height * 3;
-        let inputs: Vec<Option<Vec<f32>>> = images
-            .par_iter()
-            .map(|img| {
-                valid(img).then(|| {
-                    let t = self.preprocess.apply(img);
+        let inputs: Vec<Option<Vec<f32>>> = self
+            .preprocess
+            .apply_all(images)
+            .into_par_iter()
+            .zip(images)
+            .map(|(t, img)| {
+                t.map(|t| {
                     if t.height == self.config.input_size && t.width == self.config.input_size {
                         t.data
                     } else {
@@ -461,7 +442,7 @@ impl FeatureExtractor for OnnxExtractor {
             }
         }
         // Only empty or malformed images are left: zero maps, as `dino-vit` gives them.
-        Ok(maps.into_iter().map(|m| m.unwrap_or_else(|| Self::zero_map(channels))).collect())
+        Ok(maps.into_iter().map(|m| m.unwrap_or_else(|| FeatureMap::zeros(channels, channels))).collect())
     }
 
     fn identity(&self) -> String {

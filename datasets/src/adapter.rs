@@ -52,6 +52,15 @@ pub fn nothing_derived<C>(_config: &C, _root: &Path, _scene: &Scene) -> Vec<sos_
     Vec::new()
 }
 
+/// Refuses a capture folder `root` that does not exist, saying what was `expected` there
+/// (the hint reads "expected {expected}; check `path`").
+pub fn require_folder(root: &Path, expected: &str) -> Result<(), DatasetError> {
+    if root.is_dir() {
+        return Ok(());
+    }
+    Err(DatasetError::Missing { path: root.to_path_buf(), hint: format!("expected {expected}; check `path`") })
+}
+
 /// Splits `n` views: every `hold_out_every`-th view from 0 is a test view (none when 0).
 pub fn hold_out_split(n: usize, hold_out_every: usize) -> (Vec<usize>, Vec<usize>) {
     let is_test = |i: usize| hold_out_every > 0 && i.is_multiple_of(hold_out_every);

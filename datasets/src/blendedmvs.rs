@@ -25,7 +25,7 @@ use sos_core::camera::Vec3;
 use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, View};
 
-use crate::adapter::{hold_out_views, orbit_scene, register_dataset};
+use crate::adapter::{hold_out_views, orbit_scene, register_dataset, require_folder};
 use crate::image_files::{check_images_for, find_with_stem, list_images, stem};
 use crate::pose::{self, Pose};
 use crate::tanks_temples::parse_c2w_opencv;
@@ -209,14 +209,7 @@ fn chosen_layout(cfg: &BlendedMvsConfig, root: &Path) -> Layout {
 /// Loads a BlendedMVS scene from folder `root` (the config's `path` already resolved).
 pub fn load_blendedmvs(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetError> {
     check_aabb(root, cfg.aabb)?;
-    if !root.is_dir() {
-        return Err(DatasetError::Missing {
-            path: root.to_path_buf(),
-            hint: "expected a BlendedMVS scene folder (blended_images/ + cams/, or rgb/ + pose/); \
-                   check `path`"
-                .into(),
-        });
-    }
+    require_folder(root, "a BlendedMVS scene folder (blended_images/ + cams/, or rgb/ + pose/)")?;
     match chosen_layout(cfg, root) {
         Layout::Nsvf => load_nsvf(cfg, root),
         _ => load_original(cfg, root),

@@ -11,14 +11,14 @@ use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use sos_core::camera::{add, cross, dot, normalize, sub, Camera, Vec3};
+use sos_core::camera::{add, cross, dot, norm, normalize, scale, sub, Camera, Vec3};
 use sos_core::image::RgbImage;
 use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, SceneExtent, View};
 
 use sos_core::derived::DerivedSetting;
 
-use crate::adapter::register_dataset;
+use crate::adapter::{register_dataset, require_folder};
 use crate::image_files::{find_image, find_with_stem, load_mask, stem};
 use crate::text::invalid;
 use crate::views::{camera_focus, check_aabb, extent_of, extent_setting};
@@ -286,10 +286,6 @@ fn near_of_box(views: &[View], train: &[usize], min: Vec3, max: Vec3) -> f32 {
     }
 }
 
-fn norm(v: Vec3) -> f32 {
-    dot(v, v).sqrt()
-}
-
 /// Loads a Blender-layout scene from folder `root` (the config's `path` already resolved).
 pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetError> {
     if cfg.downscale == 0 {
@@ -307,12 +303,7 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
             return Err(invalid(root, "config key `near` must be zero or positive"));
         }
     }
-    if !root.is_dir() {
-        return Err(DatasetError::Missing {
-            path: root.to_path_buf(),
-            hint: "expected a Blender-layout scene folder with transforms_*.json; check `path`".into(),
-        });
-    }
+    require_folder(root, "a Blender-layout scene folder with transforms_*.json")?;
     let (angle_train, train_frames) = read_split(root, "train")?;
     let (angle_test, test_frames) = read_split(root, &cfg.test_split)?;
     if train_frames.is_empty() {
@@ -393,11 +384,11 @@ pub(crate) fn orbit_path(train: &[&Camera], centre: Vec3, n: usize) -> Vec<Camer
     let up = normalize(up);
     for c in train {
         let d = sub(c.origin(), centre);
-        dist += dot(d, d).sqrt() / train.len() as f32;
+        dist += norm(d) / train.len() as f32;
         height += dot(d, up) / train.len() as f32;
     }
     let d0 = sub(first.origin(), centre);
-    let e1 = normalize(sub(d0, scale3(up, dot(d0, up))));
+    let e1 = normalize(sub(d0, scale(up, dot(d0, up))));
     let e2 = cross(up, e1);
     let ring = (dist * dist - height * height).max(0.0).sqrt();
     if ring < 1e-3 * dist.max(1e-6) || dot(e1, e1) < 0.5 {
@@ -406,8 +397,8 @@ pub(crate) fn orbit_path(train: &[&Camera], centre: Vec3, n: usize) -> Vec<Camer
     (0..n)
         .map(|i| {
             let (s, c) = (std::f32::consts::TAU * i as f32 / n as f32).sin_cos();
-            let around = add(scale3(e1, ring * c), scale3(e2, ring * s));
-            let eye = add(add(centre, scale3(up, height)), around);
+            let around = add(scale(e1, ring * c), scale(e2, ring * s));
+            let eye = add(add(centre, scale(up, height)), around);
             Camera::look_at(eye, centre, up, first.width, first.height, first.fx)
         })
         .collect()
@@ -423,10 +414,6 @@ pub(crate) fn orbit_path_around(views: &[View], train: &[usize], extent: &SceneE
     };
     let cams: Vec<&Camera> = train.iter().map(|&i| &views[i].camera).collect();
     orbit_path(&cams, centre, 40)
-}
-
-fn scale3(v: Vec3, s: f32) -> Vec3 {
-    [v[0] * s, v[1] * s, v[2] * s]
 }
 
 #[cfg(test)]

@@ -27,10 +27,12 @@ use sos_core::camera::Vec3;
 use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, View};
 
-use crate::adapter::{hold_out_views, orbit_scene, register_dataset};
+use crate::adapter::{hold_out_views, orbit_scene, register_dataset, require_folder};
 use crate::pose::{self, Pose, M3, V3};
 use crate::text::{invalid, read_bytes};
-use crate::views::{check_aabb, checked_camera, extent_of, load_image_sized, optional_mask, Intrinsics, NO_AABB};
+use crate::views::{
+    check_aabb, checked_camera, extent_of, load_image_sized, optional_mask, unbounded_unless_aabb, Intrinsics,
+};
 
 /// Configuration of the `co3d` dataset (`[scene] kind = "co3d"`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -64,15 +66,8 @@ register_dataset!(
 );
 
 /// The extent this adapter chose where the config gives no `aabb`.
-fn derived_co3d(
-    cfg: &Co3dConfig,
-    _root: &Path,
-    scene: &sos_core::scene::Scene,
-) -> Vec<sos_core::derived::DerivedSetting> {
-    match cfg.aabb {
-        Some(_) => Vec::new(),
-        None => vec![crate::views::extent_setting(scene, NO_AABB)],
-    }
+fn derived_co3d(cfg: &Co3dConfig, _root: &Path, scene: &Scene) -> Vec<sos_core::derived::DerivedSetting> {
+    unbounded_unless_aabb(cfg.aabb, scene)
 }
 
 /// `image` of a frame annotation.
@@ -288,12 +283,7 @@ fn choose_sequence(
 /// Loads one CO3Dv2 sequence from category folder `root` (the config's `path` resolved).
 pub fn load_co3d(cfg: &Co3dConfig, root: &Path) -> Result<Scene, DatasetError> {
     check_aabb(root, cfg.aabb)?;
-    if !root.is_dir() {
-        return Err(DatasetError::Missing {
-            path: root.to_path_buf(),
-            hint: "expected a CO3Dv2 category folder with frame_annotations.jgz; check `path`".into(),
-        });
-    }
+    require_folder(root, "a CO3Dv2 category folder with frame_annotations.jgz")?;
     let frames_path = root.join("frame_annotations.jgz");
     let seqs_path = root.join("sequence_annotations.jgz");
     let hint = "a CO3Dv2 category folder holds frame_annotations.jgz and sequence_annotations.jgz";

@@ -32,11 +32,13 @@ use sos_core::camera::Vec3;
 use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, View};
 
-use crate::adapter::{hold_out_views, orbit_scene, register_dataset};
+use crate::adapter::{hold_out_views, orbit_scene, register_dataset, require_folder};
 use crate::image_files::find_with_stem;
 use crate::pose::{self, Pose};
 use crate::text::{invalid, number, read_bytes, read_text, Reader};
-use crate::views::{check_aabb, checked_camera, extent_of, optional_mask, scene_name, Intrinsics, NO_AABB};
+use crate::views::{
+    check_aabb, checked_camera, extent_of, optional_mask, scene_name, unbounded_unless_aabb, Intrinsics,
+};
 
 /// Configuration of the `colmap` dataset (`[scene] kind = "colmap"`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -82,15 +84,8 @@ register_dataset!(
 );
 
 /// The extent this adapter chose where the config gives no `aabb`.
-fn derived_colmap(
-    cfg: &ColmapConfig,
-    _root: &Path,
-    scene: &sos_core::scene::Scene,
-) -> Vec<sos_core::derived::DerivedSetting> {
-    match cfg.aabb {
-        Some(_) => Vec::new(),
-        None => vec![crate::views::extent_setting(scene, NO_AABB)],
-    }
+fn derived_colmap(cfg: &ColmapConfig, _root: &Path, scene: &Scene) -> Vec<sos_core::derived::DerivedSetting> {
+    unbounded_unless_aabb(cfg.aabb, scene)
 }
 
 /// COLMAP camera model: name, parameter count, whether the first parameter is a single focal
@@ -145,14 +140,8 @@ pub struct ColmapImage {
 /// Parses `cameras.bin`.
 pub fn parse_cameras_bin(path: &Path, bytes: &[u8]) -> Result<Vec<ColmapCamera>, DatasetError> {
     let mut r = Reader::new(path, bytes);
-    let n = r.u64("the camera count")?;
-    // Each camera takes at least 24 bytes: refuse counts the file cannot hold.
-    if n > (r.remaining() / 24) as u64 {
-        return Err(invalid(
-            path,
-            format!("camera count {n} does not fit in the file ({} bytes); re-export the model", bytes.len()),
-        ));
-    }
+    // Each camera takes at least 24 bytes.
+    let n = read_count(&mut r, path, bytes, "camera", 24)?;
     let mut cams = Vec::with_capacity(n as usize);
     for i in 0..n {
         let what = format!("camera {i}");
@@ -168,6 +157,20 @@ pub fn parse_cameras_bin(path: &Path, bytes: &[u8]) -> Result<Vec<ColmapCamera>,
         return Err(invalid(path, format!("{} bytes left after the last camera; re-export the model", r.remaining())));
     }
     Ok(cams)
+}
+
+/// The count of `what`s (`camera`, `image`) the binary model file `bytes` starts with, read by
+/// `r`; refused when the rest of the file cannot hold that many records of at least
+/// `min_bytes`.
+fn read_count(r: &mut Reader, path: &Path, bytes: &[u8], what: &str, min_bytes: usize) -> Result<u64, DatasetError> {
+    let n = r.u64(&format!("the {what} count"))?;
+    if n > (r.remaining() / min_bytes) as u64 {
+        return Err(invalid(
+            path,
+            format!("{what} count {n} does not fit in the file ({} bytes); re-export the model", bytes.len()),
+        ));
+    }
+    Ok(n)
 }
 
 fn model_index(path: &Path, id: i64, what: &str) -> Result<usize, DatasetError> {
@@ -218,14 +221,8 @@ pub fn parse_cameras_txt(path: &Path, text: &str) -> Result<Vec<ColmapCamera>, D
 /// Parses `images.bin`.
 pub fn parse_images_bin(path: &Path, bytes: &[u8]) -> Result<Vec<ColmapImage>, DatasetError> {
     let mut r = Reader::new(path, bytes);
-    let n = r.u64("the image count")?;
     // Each image takes at least 73 bytes.
-    if n > (r.remaining() / 73) as u64 {
-        return Err(invalid(
-            path,
-            format!("image count {n} does not fit in the file ({} bytes); re-export the model", bytes.len()),
-        ));
-    }
+    let n = read_count(&mut r, path, bytes, "image", 73)?;
     let mut images = Vec::with_capacity(n as usize);
     for i in 0..n {
         let what = format!("image {i}");
@@ -371,12 +368,7 @@ fn mask_path(root: &Path, name: &str) -> Option<PathBuf> {
 /// Loads a COLMAP scene from folder `root` (the config's `path` already resolved).
 pub fn load_colmap(cfg: &ColmapConfig, root: &Path) -> Result<Scene, DatasetError> {
     check_aabb(root, cfg.aabb)?;
-    if !root.is_dir() {
-        return Err(DatasetError::Missing {
-            path: root.to_path_buf(),
-            hint: "expected a COLMAP scene folder with images/ and sparse/0/; check `path`".into(),
-        });
-    }
+    require_folder(root, "a COLMAP scene folder with images/ and sparse/0/")?;
     let model_dir = find_model_dir(cfg, root)?;
     let (cams, mut images, images_file) = read_model(&model_dir)?;
     let cam_file = images_file.with_file_name(if images_file.extension().is_some_and(|e| e == "bin") {

@@ -27,7 +27,7 @@ use sos_core::image::RgbImage;
 use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, SceneExtent, View};
 
-use crate::adapter::{hold_out_views, register_dataset};
+use crate::adapter::{hold_out_views, register_dataset, require_folder};
 use crate::image_files::{find_with_stem, list_images, load_mask, stem};
 use crate::npy::read_npy;
 use crate::pose::{self, Pose};
@@ -303,12 +303,7 @@ fn derived_llff(cfg: &LlffConfig, root: &Path, scene: &Scene) -> Vec<DerivedSett
 
 /// Loads an LLFF scene from folder `root` (the config's `path` already resolved).
 pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
-    if !root.is_dir() {
-        return Err(DatasetError::Missing {
-            path: root.to_path_buf(),
-            hint: "expected an LLFF scene folder with poses_bounds.npy and images_N/; check `path`".into(),
-        });
-    }
+    require_folder(root, "an LLFF scene folder with poses_bounds.npy and images_N/")?;
     let npy_path = root.join("poses_bounds.npy");
     let geo = read_llff_geometry(cfg, &npy_path)?;
     let source = image_source(cfg, root, geo.hwf)?;

@@ -22,7 +22,7 @@ use serde::{Deserialize, Serialize};
 use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, SceneExtent, View};
 
-use crate::adapter::{orbit_scene, register_dataset};
+use crate::adapter::{orbit_scene, register_dataset, require_folder};
 use crate::image_files::{check_images_for, find_with_stem, list_images, stem};
 use crate::pose::{self, Pose};
 use crate::text::{invalid, matrix4, read_text};
@@ -190,12 +190,7 @@ pub fn load_tanks_temples(cfg: &TanksTemplesConfig, root: &Path) -> Result<Scene
             format!("config key `test_split` must be \"test\" or \"validation\", got {:?}", cfg.test_split),
         ));
     }
-    if !root.is_dir() {
-        return Err(DatasetError::Missing {
-            path: root.to_path_buf(),
-            hint: "expected a NeRF++-layout scene folder with train/ and test/; check `path`".into(),
-        });
-    }
+    require_folder(root, "a NeRF++-layout scene folder with train/ and test/")?;
     let train_files = split_files(root, "train")?;
     let test_files = split_files(root, &cfg.test_split)?;
     let mut views = load_split(&train_files)?;

@@ -151,6 +151,15 @@ pub fn extent_setting(scene: &Scene, reason: &str) -> DerivedSetting {
     DerivedSetting::new("scene.extent", scene.extent, reason)
 }
 
+/// The derived settings of an adapter whose extent, where the config gives no `aabb`, is the
+/// unbounded one of [`extent_of`].
+pub fn unbounded_unless_aabb(aabb: Option<[Vec3; 2]>, scene: &Scene) -> Vec<DerivedSetting> {
+    match aabb {
+        Some(_) => Vec::new(),
+        None => vec![extent_setting(scene, NO_AABB)],
+    }
+}
+
 /// Checks a user-given box.
 pub fn check_aabb(root: &Path, aabb: Option<[Vec3; 2]>) -> Result<(), DatasetError> {
     match aabb {

@@ -1,22 +1,18 @@
 //! Loading of the reference fixtures (tests only).
 
 use serde_json::Value;
+use sos_core::testing::fixture::{load_fixture, Array};
 
 /// One parsed fixture file.
 pub(crate) struct Fixture(Value);
 
 impl Fixture {
     pub(crate) fn appearance() -> Self {
-        Fixture(
-            serde_json::from_str(include_str!("../../fixtures/losses/appearance.json"))
-                .expect("appearance fixture parses"),
-        )
+        Fixture(load_fixture(include_str!("../../fixtures/losses/appearance.json")))
     }
 
     pub(crate) fn geometry() -> Self {
-        Fixture(
-            serde_json::from_str(include_str!("../../fixtures/losses/geometry.json")).expect("geometry fixture parses"),
-        )
+        Fixture(load_fixture(include_str!("../../fixtures/losses/geometry.json")))
     }
 
     /// A scalar.
@@ -26,20 +22,7 @@ impl Fixture {
 
     /// An array: (shape, data as f64).
     pub(crate) fn array(&self, key: &str) -> (Vec<usize>, Vec<f64>) {
-        let v = &self.0[key];
-        let shape = v["shape"]
-            .as_array()
-            .unwrap_or_else(|| panic!("fixture key {key} has no shape"))
-            .iter()
-            .map(|x| x.as_u64().expect("shape entry") as usize)
-            .collect::<Vec<_>>();
-        let data = v["data"]
-            .as_array()
-            .unwrap_or_else(|| panic!("fixture key {key} has no data"))
-            .iter()
-            .map(|x| x.as_f64().expect("data entry"))
-            .collect::<Vec<_>>();
-        assert_eq!(shape.iter().product::<usize>(), data.len(), "fixture key {key}");
+        let Array { shape, data } = Array::from(&self.0[key]);
         (shape, data)
     }
 

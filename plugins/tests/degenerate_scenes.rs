@@ -217,9 +217,8 @@ fn an_opaque_field_gives_finite_metrics() {
 struct NanColour(Box<dyn RadianceField>);
 
 impl RadianceField for NanColour {
-    fn density(&self, p: &[Vec3], d: &mut [f32]) {
-        self.0.density(p, d);
-    }
+    sos_core::pass_on_field_methods!(0);
+
     fn forward(&self, p: &[Vec3], dirs: &[Vec3], d: &mut [f32], c: &mut [[f32; 3]], record: bool) -> FieldTape {
         let tape = self.0.forward(p, dirs, d, c, record);
         c.iter_mut().for_each(|c| *c = [f32::NAN; 3]);
@@ -230,36 +229,6 @@ impl RadianceField for NanColour {
     }
     fn step(&mut self, lr_factor: f32) {
         self.0.step(lr_factor);
-    }
-    fn gradients_finite(&self) -> bool {
-        self.0.gradients_finite()
-    }
-    fn discard_gradients(&mut self) {
-        self.0.discard_gradients();
-    }
-    fn seg_input_dim(&self) -> usize {
-        self.0.seg_input_dim()
-    }
-    fn seg_input(&self, p: &[Vec3], out: &mut [f32]) {
-        self.0.seg_input(p, out);
-    }
-    fn save_state(&self) -> Vec<u8> {
-        self.0.save_state()
-    }
-    fn load_state(&mut self, b: &[u8]) -> Result<(), sos_core::error::StateError> {
-        self.0.load_state(b)
-    }
-    fn num_parameters(&self) -> usize {
-        self.0.num_parameters()
-    }
-    fn parameters(&self) -> Vec<f32> {
-        self.0.parameters()
-    }
-    fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
-        self.0.set_parameters(values)
-    }
-    fn gradients(&self) -> Vec<f32> {
-        self.0.gradients()
     }
 }
 

@@ -9,7 +9,6 @@ use std::sync::Arc;
 
 use common::tiny_session;
 use sos_core::camera::Vec3;
-use sos_core::error::StateError;
 use sos_core::plugin::field::plain;
 use sos_core::plugin::{FieldTape, FrozenPass, HierarchicalSampling, RadianceField};
 use sos_core::segment::train::{train_segmentation, Segmenter};
@@ -27,9 +26,8 @@ struct Probe {
 }
 
 impl RadianceField for Probe {
-    fn density(&self, p: &[Vec3], d: &mut [f32]) {
-        self.inner.density(p, d);
-    }
+    sos_core::pass_on_field_methods!(inner);
+
     fn forward(&self, p: &[Vec3], d: &[Vec3], density: &mut [f32], rgb: &mut [[f32; 3]], record: bool) -> FieldTape {
         self.inner.forward(p, d, density, rgb, record)
     }
@@ -38,36 +36,6 @@ impl RadianceField for Probe {
     }
     fn step(&mut self, lr_factor: f32) {
         self.inner.step(lr_factor);
-    }
-    fn gradients_finite(&self) -> bool {
-        self.inner.gradients_finite()
-    }
-    fn discard_gradients(&mut self) {
-        self.inner.discard_gradients();
-    }
-    fn seg_input_dim(&self) -> usize {
-        self.inner.seg_input_dim()
-    }
-    fn seg_input(&self, p: &[Vec3], out: &mut [f32]) {
-        self.inner.seg_input(p, out);
-    }
-    fn save_state(&self) -> Vec<u8> {
-        self.inner.save_state()
-    }
-    fn load_state(&mut self, bytes: &[u8]) -> Result<(), StateError> {
-        self.inner.load_state(bytes)
-    }
-    fn num_parameters(&self) -> usize {
-        self.inner.num_parameters()
-    }
-    fn parameters(&self) -> Vec<f32> {
-        self.inner.parameters()
-    }
-    fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
-        self.inner.set_parameters(values)
-    }
-    fn gradients(&self) -> Vec<f32> {
-        self.inner.gradients()
     }
     fn hierarchical(&self) -> Option<&dyn HierarchicalSampling> {
         self.inner.hierarchical()

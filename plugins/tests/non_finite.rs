@@ -43,9 +43,8 @@ impl Poisoned {
 }
 
 impl RadianceField for Poisoned {
-    fn density(&self, p: &[Vec3], d: &mut [f32]) {
-        self.inner.density(p, d);
-    }
+    sos_core::pass_on_field_methods!(inner);
+
     fn forward(&self, p: &[Vec3], dirs: &[Vec3], d: &mut [f32], c: &mut [[f32; 3]], record: bool) -> FieldTape {
         let tape = self.inner.forward(p, dirs, d, c, record);
         if self.active() {
@@ -68,36 +67,6 @@ impl RadianceField for Poisoned {
     fn step(&mut self, lr_factor: f32) {
         self.applied.fetch_add(1, Ordering::Relaxed);
         self.inner.step(lr_factor);
-    }
-    fn gradients_finite(&self) -> bool {
-        self.inner.gradients_finite()
-    }
-    fn discard_gradients(&mut self) {
-        self.inner.discard_gradients();
-    }
-    fn seg_input_dim(&self) -> usize {
-        self.inner.seg_input_dim()
-    }
-    fn seg_input(&self, p: &[Vec3], out: &mut [f32]) {
-        self.inner.seg_input(p, out)
-    }
-    fn save_state(&self) -> Vec<u8> {
-        self.inner.save_state()
-    }
-    fn load_state(&mut self, b: &[u8]) -> Result<(), StateError> {
-        self.inner.load_state(b)
-    }
-    fn num_parameters(&self) -> usize {
-        self.inner.num_parameters()
-    }
-    fn parameters(&self) -> Vec<f32> {
-        self.inner.parameters()
-    }
-    fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
-        self.inner.set_parameters(values)
-    }
-    fn gradients(&self) -> Vec<f32> {
-        self.inner.gradients()
     }
     // Every field is wrapped as growing: its step hook counts the poisoned steps.
     fn coarse_to_fine(&self) -> Option<&dyn CoarseToFine> {

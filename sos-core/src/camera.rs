@@ -179,14 +179,24 @@ pub fn dot(a: Vec3, b: Vec3) -> f32 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
+/// `s * v`.
+pub fn scale(v: Vec3, s: f32) -> Vec3 {
+    [v[0] * s, v[1] * s, v[2] * s]
+}
+
 /// Cross product.
 pub fn cross(a: Vec3, b: Vec3) -> Vec3 {
     [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 }
 
+/// Euclidean length.
+pub fn norm(v: Vec3) -> f32 {
+    dot(v, v).sqrt()
+}
+
 /// Unit vector (zero stays zero).
 pub fn normalize(v: Vec3) -> Vec3 {
-    let n = dot(v, v).sqrt();
+    let n = norm(v);
     if n > 0.0 {
         [v[0] / n, v[1] / n, v[2] / n]
     } else {

@@ -4,6 +4,7 @@
 use serde::{Deserialize, Serialize};
 use sos_core::camera::Vec3;
 use sos_core::error::{BuildError, StateError};
+use sos_core::nn::activation::{sigmoid, softplus};
 use sos_core::plugin::{FieldTape, FrozenPass, RadianceField, RadianceFieldConfig};
 use sos_core::scene::SceneExtent;
 use sos_core::testing::conformance::check_field;
@@ -43,18 +44,6 @@ struct Linear {
     theta: Vec<f32>,
     grad: Vec<f32>,
     fault: Fault,
-}
-
-fn softplus(x: f32) -> f32 {
-    if x > 20.0 {
-        x
-    } else {
-        x.exp().ln_1p()
-    }
-}
-
-fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
 }
 
 impl Linear {

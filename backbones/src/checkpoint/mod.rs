@@ -20,6 +20,8 @@ use std::collections::BTreeMap;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 
+use sos_core::error::BuildError;
+
 /// Element type of a stored tensor.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum DType {
@@ -133,6 +135,28 @@ pub struct StateDict {
 }
 
 impl StateDict {
+    /// Reads the weights file of the teacher `kind` for its `build`. A missing file, or one this
+    /// reader cannot read, is a [`BuildError::Resource`] that says how to get the file
+    /// (`get`, before "or set `weights` …") and what it must be (`must_be`, after
+    /// "`weights` must be").
+    pub fn load_weights(kind: &str, path: &Path, get: &str, must_be: &str) -> Result<StateDict, BuildError> {
+        let resource = |message: String| BuildError::Resource { kind: kind.into(), message };
+        if !path.is_file() {
+            let shown = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+            return Err(resource(format!(
+                "weights file `{}` not found: {get}, or set `weights` in `[extractor]` to where it is (a relative \
+                 path is resolved against the config file's folder). `kind = \"cell-stats\"` needs no weights",
+                shown.display()
+            )));
+        }
+        StateDict::load(path).map_err(|e| match e {
+            CheckpointError::Format { .. } | CheckpointError::Io { .. } => {
+                resource(format!("{e}. `weights` must be {must_be}"))
+            }
+            other => resource(other.to_string()),
+        })
+    }
+
     /// Reads a checkpoint, recognising the format from its first bytes.
     pub fn load(path: &Path) -> Result<StateDict, CheckpointError> {
         let bytes = std::fs::read(path).map_err(|source| CheckpointError::Io { path: path.into(), source })?;

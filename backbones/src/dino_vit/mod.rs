@@ -136,24 +136,13 @@ impl DinoVitConfig {
     pub fn load_model(&self) -> Result<(Vit, u64), BuildError> {
         self.validate()?;
         let path = &self.weights;
-        if !path.is_file() {
-            let shown = std::path::absolute(path).unwrap_or_else(|_| path.clone());
-            return Err(resource(format!(
-                "weights file `{}` not found: {} and save it there, or set `weights` in `[extractor]` to where \
-                 it is (a relative path is resolved against the config file's folder). `kind = \"cell-stats\"` \
-                 needs no weights",
-                shown.display(),
-                download_hint(self.arch)
-            )));
-        }
-        let sd = StateDict::load(path).map_err(|e| match e {
-            CheckpointError::Format { .. } | CheckpointError::Io { .. } => resource(format!(
-                "{e}. `weights` must be a DINO ViT checkpoint as published (.pth) or its state dict as \
-                 .safetensors: {}",
-                download_hint(self.arch)
-            )),
-            other => resource(other.to_string()),
-        })?;
+        let hint = download_hint(self.arch);
+        let sd = StateDict::load_weights(
+            KIND,
+            path,
+            &format!("{hint} and save it there"),
+            &format!("a DINO ViT checkpoint as published (.pth) or its state dict as .safetensors: {hint}"),
+        )?;
         let heads = self.heads.or(self.arch.dims().map(|d| d.3));
         let not_dino = |e: LoadError| match e {
             LoadError::NotDino(reason) => resource(format!(
@@ -193,7 +182,7 @@ impl DinoVitConfig {
 sos_core::plugin_kind! {
     kind: "dino-vit",
     summary: "DINO ViT-S/16, S/8, B/16 or B/8 from the official .pth (or .safetensors) weights, on the CPU (the reference's teacher)",
-    default: default_config,
+    default: || Box::new(DinoVitConfig::default()),
     impl FeatureExtractorConfig for DinoVitConfig {
         fn build(&self, ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
             let resolved = DinoVitConfig { weights: ctx.resolve(&self.weights), ..self.clone() };
@@ -202,10 +191,6 @@ sos_core::plugin_kind! {
             Ok(Box::new(DinoVit::new(model, pre, format!("{hash:016x}"), self.batch)))
         }
     }
-}
-
-fn default_config() -> Box<dyn FeatureExtractorConfig> {
-    Box::new(DinoVitConfig::default())
 }
 
 /// The `dino-vit` extractor.
@@ -241,18 +226,18 @@ impl DinoVit {
     pub fn preprocessing(&self) -> &Preprocess {
         &self.preprocess
     }
+}
 
-    fn empty_map(&self) -> FeatureMap {
-        let d = self.model.shape.dim;
-        FeatureMap {
-            channels: d,
-            height: 1,
-            width: 1,
-            data: vec![0.0; d],
-            cls: vec![0.0; d],
-            saliency: Some(vec![0.0]),
+/// One image's `np` patch tokens, rows of `dim` after `prefix` leading tokens (\[CLS\] and the
+/// like) in `tokens`, as a channel-first `[dim, np]` map.
+pub fn patch_map(tokens: &[f32], prefix: usize, dim: usize, np: usize) -> Vec<f32> {
+    let mut data = vec![0.0f32; dim * np];
+    for i in 0..np {
+        for (c, &v) in tokens[(prefix + i) * dim..(prefix + i + 1) * dim].iter().enumerate() {
+            data[c * np + i] = v;
         }
     }
+    data
 }
 
 /// Splits a forward pass into one feature map per image.
@@ -261,17 +246,11 @@ pub fn feature_maps(out: &VitOutput) -> Vec<FeatureMap> {
     (0..out.batch)
         .map(|b| {
             let tokens = &out.tokens[b * n * d..(b + 1) * n * d];
-            let mut data = vec![0.0f32; d * np];
-            for i in 0..np {
-                for (c, &v) in tokens[(1 + i) * d..(2 + i) * d].iter().enumerate() {
-                    data[c * np + i] = v;
-                }
-            }
             FeatureMap {
                 channels: d,
                 height: out.grid_h,
                 width: out.grid_w,
-                data,
+                data: patch_map(tokens, 1, d, np),
                 cls: tokens[..d].to_vec(),
                 saliency: Some(out.cls_attn[b * n + 1..(b + 1) * n].to_vec()),
             }
@@ -281,16 +260,13 @@ pub fn feature_maps(out: &VitOutput) -> Vec<FeatureMap> {
 
 impl FeatureExtractor for DinoVit {
     fn extract(&self, images: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError> {
-        let inputs = self.preprocess.apply_all(images);
+        let d = self.model.shape.dim;
         // The native forward cannot fail on valid inputs; invalid ones get empty maps.
-        Ok(preprocess::extract_in_runs(
-            &inputs,
+        Ok(self.preprocess.extract_in_runs(
+            images,
             self.batch,
-            || self.empty_map(),
-            |batch, n, h, w| {
-                let result = self.model.forward(batch, n, h, w);
-                feature_maps(&result)
-            },
+            || FeatureMap::zeros(d, d),
+            |batch, n, h, w| feature_maps(&self.model.forward(batch, n, h, w)),
         ))
     }
 

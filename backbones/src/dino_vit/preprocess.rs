@@ -194,27 +194,32 @@ pub fn stack(inputs: &[Option<Tensor3>]) -> Vec<f32> {
     inputs.iter().flatten().flat_map(|t| t.data.iter().copied()).collect()
 }
 
-/// One feature map per input, in order: `forward(batch, n, height, width)` runs on each run of
-/// equal-sized inputs (at most `max` at a time) and returns that run's maps; an input the
-/// preprocessing rejected (`None`) gets `empty()`.
-pub fn extract_in_runs(
-    inputs: &[Option<Tensor3>],
-    max: usize,
-    empty: impl Fn() -> FeatureMap,
-    mut forward: impl FnMut(&[f32], usize, usize, usize) -> Vec<FeatureMap>,
-) -> Vec<FeatureMap> {
-    let mut out: Vec<Option<FeatureMap>> = vec![None; inputs.len()];
-    for run in equal_size_runs(inputs, max) {
-        let Some(first) = &inputs[run.start] else {
-            out[run.start] = Some(empty());
-            continue;
-        };
-        let maps = forward(&stack(&inputs[run.clone()]), run.len(), first.height, first.width);
-        for (k, map) in maps.into_iter().enumerate() {
-            out[run.start + k] = Some(map);
+impl Preprocess {
+    /// One feature map per image, in order: the images' model inputs ([`Preprocess::apply_all`]),
+    /// then `forward(batch, n, height, width)` on each run of equal-sized inputs (at most `max`
+    /// at a time), which returns that run's maps; an image the preprocessing rejects gets
+    /// `empty()`.
+    pub fn extract_in_runs(
+        &self,
+        images: &[RgbImage],
+        max: usize,
+        empty: impl Fn() -> FeatureMap,
+        mut forward: impl FnMut(&[f32], usize, usize, usize) -> Vec<FeatureMap>,
+    ) -> Vec<FeatureMap> {
+        let inputs = self.apply_all(images);
+        let mut out: Vec<Option<FeatureMap>> = vec![None; inputs.len()];
+        for run in equal_size_runs(&inputs, max) {
+            let Some(first) = &inputs[run.start] else {
+                out[run.start] = Some(empty());
+                continue;
+            };
+            let maps = forward(&stack(&inputs[run.clone()]), run.len(), first.height, first.width);
+            for (k, map) in maps.into_iter().enumerate() {
+                out[run.start + k] = Some(map);
+            }
         }
+        out.into_iter().map(|m| m.unwrap_or_else(&empty)).collect()
     }
-    out.into_iter().map(|m| m.unwrap_or_else(&empty)).collect()
 }
 
 #[cfg(test)]

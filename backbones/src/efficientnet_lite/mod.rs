@@ -25,8 +25,8 @@ use sos_core::error::{BuildError, ExtractError};
 use sos_core::image::{resize_channels, RgbImage};
 use sos_core::plugin::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};
 
-use crate::checkpoint::{CheckpointError, StateDict};
-use crate::dino_vit::preprocess::{self, Preprocess, Resize};
+use crate::checkpoint::StateDict;
+use crate::dino_vit::preprocess::{Preprocess, Resize};
 pub use model::{LiteNet, LiteOutput, LoadError};
 
 const KIND: &str = EfficientNetLiteConfig::KIND;
@@ -142,20 +142,12 @@ impl EfficientNetLiteConfig {
     pub fn load_model(&self) -> Result<(LiteNet, u64), BuildError> {
         self.validate()?;
         let path = &self.weights;
-        if !path.is_file() {
-            let shown = std::path::absolute(path).unwrap_or_else(|_| path.clone());
-            return Err(resource(format!(
-                "weights file `{}` not found: {DOWNLOAD_HINT}, or set `weights` in `[extractor]` to where it is (a \
-                 relative path is resolved against the config file's folder). `kind = \"cell-stats\"` needs no weights",
-                shown.display()
-            )));
-        }
-        let sd = StateDict::load(path).map_err(|e| match e {
-            CheckpointError::Format { .. } | CheckpointError::Io { .. } => {
-                resource(format!("{e}. `weights` must be the EfficientNet-Lite0 state dict: {DOWNLOAD_HINT}"))
-            }
-            other => resource(other.to_string()),
-        })?;
+        let sd = StateDict::load_weights(
+            KIND,
+            path,
+            DOWNLOAD_HINT,
+            &format!("the EfficientNet-Lite0 state dict: {DOWNLOAD_HINT}"),
+        )?;
         let model = LiteNet::from_state_dict(&sd).map_err(|e| match e {
             LoadError::NotLite(reason) => resource(format!(
                 "`{}` is not an EfficientNet-Lite0 checkpoint: {reason}. Expected the state dict of the published \
@@ -172,7 +164,7 @@ impl EfficientNetLiteConfig {
 sos_core::plugin_kind! {
     kind: "efficientnet-lite",
     summary: "EfficientNet-Lite0 (ImageNet CNN) from the published .pth weights, on the CPU: stage features, pooled head, activation saliency",
-    default: default_config,
+    default: || Box::new(EfficientNetLiteConfig::default()),
     impl FeatureExtractorConfig for EfficientNetLiteConfig {
         fn build(&self, ctx: &BuildContext) -> Result<Box<dyn FeatureExtractor>, BuildError> {
             let resolved = EfficientNetLiteConfig { weights: ctx.resolve(&self.weights), ..self.clone() };
@@ -180,10 +172,6 @@ sos_core::plugin_kind! {
             Ok(Box::new(EfficientNetLite::new(model, self, format!("{hash:016x}"))))
         }
     }
-}
-
-fn default_config() -> Box<dyn FeatureExtractorConfig> {
-    Box::new(EfficientNetLiteConfig::default())
 }
 
 /// The `efficientnet-lite` extractor.
@@ -225,18 +213,6 @@ impl EfficientNetLite {
     pub fn preprocessing(&self) -> &Preprocess {
         &self.preprocess
     }
-
-    fn empty_map(&self) -> FeatureMap {
-        let c = arch::stage_channels(self.stage);
-        FeatureMap {
-            channels: c,
-            height: 1,
-            width: 1,
-            data: vec![0.0; c],
-            cls: vec![0.0; arch::HEAD_CHANNELS],
-            saliency: Some(vec![0.0]),
-        }
-    }
 }
 
 /// Splits a forward pass into one feature map per image, with the features of `stage`
@@ -269,16 +245,13 @@ pub fn feature_maps(out: &LiteOutput, stage: usize) -> Vec<FeatureMap> {
 
 impl FeatureExtractor for EfficientNetLite {
     fn extract(&self, images: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError> {
-        let inputs = self.preprocess.apply_all(images);
+        let channels = arch::stage_channels(self.stage);
         // The native forward cannot fail on valid inputs; invalid ones get empty maps.
-        Ok(preprocess::extract_in_runs(
-            &inputs,
+        Ok(self.preprocess.extract_in_runs(
+            images,
             self.batch,
-            || self.empty_map(),
-            |batch, n, h, w| {
-                let result = self.model.forward(batch, n, h, w);
-                feature_maps(&result, self.stage)
-            },
+            || FeatureMap::zeros(channels, arch::HEAD_CHANNELS),
+            |batch, n, h, w| feature_maps(&self.model.forward(batch, n, h, w), self.stage),
         ))
     }
 

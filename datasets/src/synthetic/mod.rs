@@ -76,12 +76,10 @@ mod world;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
-use sos_core::camera::Camera;
 use sos_core::plugin::dataset::{DatasetConfig, DatasetError};
-use sos_core::scene::{Scene, SceneExtent, View};
+use sos_core::scene::{Scene, SceneExtent};
 
 use crate::adapter::hold_out_split;
-use crate::pose::{self, Pose};
 pub use world::{OBJECT_CENTRE, OBJECT_RADIUS, ROOM_MAX, ROOM_MIN};
 
 /// Camera arrangement of the synthetic scene.
@@ -227,25 +225,10 @@ pub fn generate(cfg: &SyntheticConfig) -> Scene {
     let mut rng = rig::SplitMix::new(cfg.seed);
     let (w, h) = (cfg.width, cfg.height);
     let (train, test) = hold_out_split(cfg.views, cfg.hold_out_every);
-    let view = |i: usize, camera: Camera, r: render::Rendered| View {
-        name: format!("view_{i:03}"),
-        camera,
-        image: r.image,
-        mask: Some(r.mask),
-    };
     match cfg.rig {
         Rig::ObjectCentric => {
             let cams = rig::object_centric(cfg.views, w, h, &mut rng);
-            let mut near = f32::INFINITY;
-            let views = cams
-                .into_iter()
-                .enumerate()
-                .map(|(i, cam)| {
-                    let r = render::render_view(&world, &cam, cam.origin(), cam.forward());
-                    near = near.min(r.depth_range[0]);
-                    view(i, cam, r)
-                })
-                .collect();
+            let (views, near) = render::render_views(&world, cams);
             let pad = 0.05;
             let extent = SceneExtent::Bounded { min: ROOM_MIN.map(|v| v - pad), max: ROOM_MAX.map(|v| v + pad) };
             let render_path = rig::orbit_path(cfg.render_path_views, w, h);
@@ -264,62 +247,22 @@ pub fn generate(cfg: &SyntheticConfig) -> Scene {
             let world = open::OpenWorld::new(cfg.seed);
             let cams = rig::unbounded(cfg.views, w, h, &mut rng);
             let centre = OBJECT_CENTRE;
-            let farthest = cams
-                .iter()
-                .map(|c| {
-                    let o = c.origin();
-                    ((o[0] - centre[0]).powi(2) + (o[1] - centre[1]).powi(2) + (o[2] - centre[2]).powi(2)).sqrt()
-                })
-                .fold(0.0f32, f32::max);
-            let mut near = f32::INFINITY;
-            let views = cams
-                .into_iter()
-                .enumerate()
-                .map(|(i, cam)| {
-                    let r = render::render_view(&world, &cam, cam.origin(), cam.forward());
-                    near = near.min(r.depth_range[0]);
-                    view(i, cam, r)
-                })
-                .collect();
+            let radius = 1.1 * render::farthest(&cams, centre);
+            let (views, near) = render::render_views(&world, cams);
             Scene {
                 name: "synthetic-unbounded".into(),
                 views,
                 train,
                 test,
-                extent: SceneExtent::Unbounded { center: centre, radius: 1.1 * farthest },
+                extent: SceneExtent::Unbounded { center: centre, radius },
                 near: 0.9 * near,
                 render_path: rig::circle_path(cfg.render_path_views, w, h),
             }
         }
         Rig::ForwardFacing => {
             let cams = rig::forward_facing(cfg.views, w, h, &mut rng);
-            let poses: Vec<Pose> = cams.iter().map(pose::from_camera).collect();
-            let (recentred, avg) = pose::recenter(&poses);
-            // Depth along the mean camera's viewing axis (−back).
-            let mean_origin = [avg[0][3] as f32, avg[1][3] as f32, avg[2][3] as f32];
-            let mean_forward = [-avg[0][2] as f32, -avg[1][2] as f32, -avg[2][2] as f32];
             let focal = rig::focal_for(w) as f64;
-            let mut near = f32::INFINITY;
-            let mut far = 0.0f32;
-            let views = cams
-                .iter()
-                .zip(&recentred)
-                .enumerate()
-                .map(|(i, (cam, p))| {
-                    let r = render::render_view(&world, cam, mean_origin, mean_forward);
-                    near = near.min(r.depth_range[0]);
-                    far = far.max(r.depth_range[1]);
-                    view(i, pose::to_camera(p, w, h, focal), r)
-                })
-                .collect();
-            let (near, far) = (0.9 * near, 1.05 * far);
-            let extent =
-                SceneExtent::ForwardFacing { near, far, focal: focal as f32, width: w as f32, height: h as f32 };
-            let render_path = pose::llff_spiral(&recentred, near as f64, far as f64, cfg.render_path_views)
-                .iter()
-                .map(|p| pose::to_camera(p, w, h, focal))
-                .collect();
-            Scene { name: "synthetic-forward-facing".into(), views, train, test, extent, near, render_path }
+            render::forward_facing_scene(&world, &cams, focal, cfg, "synthetic-forward-facing".into(), train, test)
         }
         Rig::Hemisphere | Rig::Grazing | Rig::Random => unreachable!("refused by `check` for the built-in world"),
     }
@@ -339,6 +282,8 @@ pub fn describe(cfg: &SyntheticConfig) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::pose::{self, Pose};
+    use sos_core::scene::View;
 
     fn small(rig: Rig) -> SyntheticConfig {
         SyntheticConfig { rig, width: 160, height: 120, views: 16, ..Default::default() }

@@ -7,7 +7,7 @@ use sos_core::camera::{axpy, dot, normalize, Vec3};
 
 use super::geometry::{cone, cylinder, sphere, yawed_box, Hit};
 use super::texture::{checker, fbm, mix, scale, stripes, Rgb};
-use super::world::{Sample, Trace, OBJECT_CENTRE, OBJECT_RADIUS};
+use super::world::{shade, Sample, Trace, OBJECT_CENTRE, OBJECT_RADIUS};
 
 /// Radius of the ground disk (beyond it rays see the sky).
 pub const GROUND_RADIUS: f32 = 40.0;
@@ -154,15 +154,9 @@ impl Trace for OpenWorld {
             return Sample { rgb: self.sky(d), foreground: false, point: axpy(o, 1e4, d) };
         };
         let p = axpy(o, t, d);
-        let albedo = self.albedo(surface, p);
-        let mut light = AMBIENT;
-        let lambert = dot(n, self.light);
-        if lambert > 0.0 && Self::foreground(axpy(p, 1e-3, n), self.light).is_none() {
-            light += DIFFUSE * lambert;
-        }
-        let rgb = scale(albedo, light);
+        let lit = || Self::foreground(axpy(p, 1e-3, n), self.light).is_none();
         Sample {
-            rgb: [rgb[0].min(1.0), rgb[1].min(1.0), rgb[2].min(1.0)],
+            rgb: shade(self.albedo(surface, p), n, self.light, AMBIENT, DIFFUSE, lit),
             foreground: matches!(surface, Surface::Sphere | Surface::Pedestal),
             point: p,
         }

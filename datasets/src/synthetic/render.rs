@@ -1,11 +1,17 @@
-//! Renders one view of the synthetic world: 2x2 supersampled colour, an exact mask from the
-//! pixel-centre ray and the range of content depths along a reference axis.
+//! Renders the views of a synthetic world: 2x2 supersampled colour, an exact mask from the
+//! pixel-centre ray and the range of content depths along a reference axis per view; and the
+//! capture of a rig, the views with what the scene states about them (`near`, for
+//! forward-facing rigs the extent and render path), the same for the built-in and the random
+//! worlds.
 
 use rayon::prelude::*;
 use sos_core::camera::{dot, sub, Camera, Vec3};
 use sos_core::image::{GrayImage, RgbImage};
+use sos_core::scene::{Scene, SceneExtent, View};
 
 use super::world::Trace;
+use super::SyntheticConfig;
+use crate::pose::{self, Pose};
 
 /// Sub-pixel offsets of the 2x2 supersampling pattern.
 const SUBSAMPLES: [[f32; 2]; 4] = [[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75]];
@@ -46,4 +52,76 @@ pub fn render_view<W: Trace + Sync>(world: &W, cam: &Camera, depth_origin: Vec3,
         })
         .reduce(|| [f32::INFINITY, f32::NEG_INFINITY], |a, b| [a[0].min(b[0]), a[1].max(b[1])]);
     Rendered { image, mask, depth_range }
+}
+
+/// View `i` of a generated scene, seen by `camera`.
+pub fn view(i: usize, camera: Camera, r: Rendered) -> View {
+    View { name: format!("view_{i:03}"), camera, image: r.image, mask: Some(r.mask) }
+}
+
+/// The views of `cams`, each with depths along its own viewing axis, and the nearest depth of
+/// content they see.
+pub fn render_views<W: Trace + Sync>(world: &W, cams: impl IntoIterator<Item = Camera>) -> (Vec<View>, f32) {
+    let mut near = f32::INFINITY;
+    let views = cams
+        .into_iter()
+        .enumerate()
+        .map(|(i, cam)| {
+            let r = render_view(world, &cam, cam.origin(), cam.forward());
+            near = near.min(r.depth_range[0]);
+            view(i, cam, r)
+        })
+        .collect();
+    (views, near)
+}
+
+/// The scene a forward-facing rig `cams` captures (`cfg` gives the image size and the render
+/// path's length): views in the frame of the cameras' LLFF average pose, with focal length
+/// `focal`; the `ForwardFacing` extent spanning the depths of content along the mean camera's
+/// viewing axis, widened by 10 % towards it and 5 % away; the LLFF spiral as render path.
+pub fn forward_facing_scene<W: Trace + Sync>(
+    world: &W,
+    cams: &[Camera],
+    focal: f64,
+    cfg: &SyntheticConfig,
+    name: String,
+    train: Vec<usize>,
+    test: Vec<usize>,
+) -> Scene {
+    let (w, h) = (cfg.width, cfg.height);
+    let poses: Vec<Pose> = cams.iter().map(pose::from_camera).collect();
+    let (recentred, avg) = pose::recenter(&poses);
+    // Depth along the mean camera's viewing axis (−back).
+    let mean_origin = [avg[0][3] as f32, avg[1][3] as f32, avg[2][3] as f32];
+    let mean_forward = [-avg[0][2] as f32, -avg[1][2] as f32, -avg[2][2] as f32];
+    let mut near = f32::INFINITY;
+    let mut far = 0.0f32;
+    let views = cams
+        .iter()
+        .zip(&recentred)
+        .enumerate()
+        .map(|(i, (cam, p))| {
+            let r = render_view(world, cam, mean_origin, mean_forward);
+            near = near.min(r.depth_range[0]);
+            far = far.max(r.depth_range[1]);
+            view(i, pose::to_camera(p, w, h, focal), r)
+        })
+        .collect();
+    let (near, far) = (0.9 * near, 1.05 * far);
+    let extent = SceneExtent::ForwardFacing { near, far, focal: focal as f32, width: w as f32, height: h as f32 };
+    let render_path = pose::llff_spiral(&recentred, near as f64, far as f64, cfg.render_path_views)
+        .iter()
+        .map(|p| pose::to_camera(p, w, h, focal))
+        .collect();
+    Scene { name, views, train, test, extent, near, render_path }
+}
+
+/// Distance from `centre` to the farthest camera centre.
+pub fn farthest(cams: &[Camera], centre: Vec3) -> f32 {
+    cams.iter()
+        .map(|c| {
+            let o = c.origin();
+            (0..3).map(|k| (o[k] - centre[k]).powi(2)).sum::<f32>().sqrt()
+        })
+        .fold(0.0, f32::max)
 }

@@ -11,10 +11,8 @@ pub fn mix(a: Rgb, b: Rgb, t: f32) -> Rgb {
     [a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]), a[2] + t * (b[2] - a[2])]
 }
 
-/// Scales a colour.
-pub fn scale(a: Rgb, s: f32) -> Rgb {
-    [a[0] * s, a[1] * s, a[2] * s]
-}
+/// Scales a colour: an [`Rgb`] is a [`Vec3`](sos_core::camera::Vec3), scaled as vectors are.
+pub use sos_core::camera::scale;
 
 /// A smoothed square wave in `[0, 1]` of period `period` (in the units of `x`); `softness`
 /// is the edge width as a fraction of the period.

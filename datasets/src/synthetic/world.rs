@@ -57,6 +57,18 @@ pub struct Sample {
     pub point: Vec3,
 }
 
+/// Lambertian shading of a surface point of albedo `albedo` and unit normal `n` under the
+/// directional light `light`: `ambient`, plus `diffuse` times the cosine where the point faces
+/// the light and `lit()` finds nothing in its way; each channel at most 1.
+pub fn shade(albedo: Rgb, n: Vec3, light: Vec3, ambient: f32, diffuse: f32, lit: impl FnOnce() -> bool) -> Rgb {
+    let mut level = ambient;
+    let lambert = dot(n, light);
+    if lambert > 0.0 && lit() {
+        level += diffuse * lambert;
+    }
+    scale(albedo, level).map(|v| v.min(1.0))
+}
+
 /// Something primary rays can be traced through (the room, the open world).
 pub trait Trace {
     /// Traces a primary ray (unit direction `d`).
@@ -128,15 +140,9 @@ impl World {
             _ => ((t_room, n_room), Surface::Room(face)),
         };
         let p = axpy(o, t, d);
-        let albedo = self.albedo(surface, p);
-        let mut light = AMBIENT;
-        let lambert = dot(n, self.light);
-        if lambert > 0.0 && self.hit_objects(axpy(p, 1e-3, n), self.light).is_none() {
-            light += DIFFUSE * lambert;
-        }
-        let rgb = scale(albedo, light);
+        let lit = || self.hit_objects(axpy(p, 1e-3, n), self.light).is_none();
         Sample {
-            rgb: [rgb[0].min(1.0), rgb[1].min(1.0), rgb[2].min(1.0)],
+            rgb: shade(self.albedo(surface, p), n, self.light, AMBIENT, DIFFUSE, lit),
             foreground: matches!(surface, Surface::Sphere | Surface::Pedestal),
             point: p,
         }

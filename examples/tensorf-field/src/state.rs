@@ -1,10 +1,11 @@
-//! The saved state (a checkpoint's `field` section): a length-prefixed JSON header with the
-//! current resolution, the growths done and every tensor's name and shape, then every value as
-//! little-endian `f32`, in layout order. Loading checks the header against the config first,
-//! so a state of another shape is refused with the keys that differ, and a short body as
-//! truncated.
+//! The saved state (a checkpoint's `field` section), in the layout of
+//! [`sos_core::plugin::state`]: a length-prefixed JSON header with the current resolution, the
+//! growths done and every tensor's name and shape, then every value as little-endian `f32`, in
+//! layout order. Loading checks the header against the config first, so a state of another
+//! shape is refused with the keys that differ, and a short body as truncated.
 
 use sos_core::error::StateError;
+use sos_core::plugin::state;
 
 use crate::config::TensorfConfig;
 use crate::layout::Layout;
@@ -30,28 +31,16 @@ pub struct Loaded {
 pub fn write(layout: &Layout, tensors: &[Matrix], resolution: [usize; 3], next_growth: usize) -> Vec<u8> {
     let shapes: Vec<(&str, usize, usize)> = layout.specs.iter().map(|s| (s.name.as_str(), s.rows, s.cols)).collect();
     let header =
-        serde_json::json!({ "format": 1, "resolution": resolution, "next_growth": next_growth, "tensors": shapes })
-            .to_string();
-    let mut out = Vec::with_capacity(8 + header.len() + layout.total() * 4);
-    out.extend_from_slice(&(header.len() as u64).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
-    for t in tensors {
-        for v in t.as_vec() {
-            out.extend_from_slice(&v.to_le_bytes());
-        }
-    }
-    out
+        serde_json::json!({ "format": 1, "resolution": resolution, "next_growth": next_growth, "tensors": shapes });
+    let values: Vec<Vec<f32>> = tensors.iter().map(|t| t.as_vec()).collect();
+    let parts: Vec<&[f32]> = values.iter().map(|v| &v[..]).collect();
+    state::write(&header, &parts)
 }
 
 /// A state that [`write`] made for a field of the same config.
 pub fn read(config: &TensorfConfig, bytes: &[u8]) -> Result<Loaded, StateError> {
-    let truncated = || StateError::Truncated { kind: kind() };
     let malformed = |reason: String| StateError::Malformed { kind: kind(), reason };
-    let len = u64::from_le_bytes(bytes.get(..8).ok_or_else(truncated)?.try_into().expect("8 bytes"));
-    let end =
-        usize::try_from(len).ok().and_then(|l| l.checked_add(8)).ok_or_else(|| malformed("header length".into()))?;
-    let header: serde_json::Value = serde_json::from_slice(bytes.get(8..end).ok_or_else(truncated)?)
-        .map_err(|e| malformed(format!("header: {e}")))?;
+    let (header, body) = state::read(crate::KIND, bytes)?;
     let resolution: [usize; 3] =
         serde_json::from_value(header["resolution"].clone()).map_err(|e| malformed(format!("resolution: {e}")))?;
     let next_growth = header["next_growth"].as_u64().ok_or_else(|| malformed("no growth count".into()))? as usize;
@@ -83,15 +72,8 @@ pub fn read(config: &TensorfConfig, bytes: &[u8]) -> Result<Loaded, StateError> 
             });
         }
     }
-    let body = &bytes[end..];
-    let total = layout.total();
-    if body.len() < total * 4 {
-        return Err(truncated());
-    }
-    if body.len() > total * 4 {
-        return Err(malformed(format!("{} bytes after the last value", body.len() - total * 4)));
-    }
-    let mut values = body.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes")));
+    let values = state::values(crate::KIND, body, layout.total())?;
+    let mut values = values.into_iter();
     let values = layout.specs.iter().map(|s| values.by_ref().take(s.len()).collect()).collect();
     Ok(Loaded { resolution, next_growth, layout, values })
 }

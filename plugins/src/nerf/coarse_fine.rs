@@ -20,6 +20,46 @@ pub trait Level: RadianceField {
     fn mlps_mut(&mut self) -> Vec<&mut NerfMlp>;
 }
 
+/// The [`RadianceField`] methods of a [`Level`] that depend on its networks alone (gradient
+/// checks, state, parameters), for an `impl RadianceField` block of a level kind.
+macro_rules! network_methods {
+    () => {
+        fn gradients_finite(&self) -> bool {
+            $crate::nerf::Level::mlps(self).iter().all(|m| m.gradients_finite())
+        }
+
+        fn discard_gradients(&mut self) {
+            $crate::nerf::Level::mlps_mut(self).into_iter().for_each($crate::nerf::NerfMlp::zero_grad);
+        }
+
+        fn save_state(&self) -> Vec<u8> {
+            $crate::nerf::write_params(&$crate::nerf::Level::mlps(self))
+        }
+
+        fn load_state(&mut self, bytes: &[u8]) -> Result<(), sos_core::error::StateError> {
+            $crate::nerf::read_params(bytes, &mut $crate::nerf::Level::mlps_mut(self))
+        }
+
+        fn num_parameters(&self) -> usize {
+            $crate::nerf::Level::mlps(self).iter().map(|m| m.num_parameters()).sum()
+        }
+
+        fn parameters(&self) -> Vec<f32> {
+            $crate::nerf::mlp_parameters(&$crate::nerf::Level::mlps(self))
+        }
+
+        fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
+            $crate::nerf::set_mlp_parameters(&mut $crate::nerf::Level::mlps_mut(self), values)
+        }
+
+        fn gradients(&self) -> Vec<f32> {
+            $crate::nerf::mlp_gradients(&$crate::nerf::Level::mlps(self))
+        }
+    };
+}
+
+pub(crate) use network_methods;
+
 /// A fine and a coarse level of one kind, as one field.
 pub struct CoarseFine<L> {
     fine: L,

@@ -7,7 +7,7 @@ use std::any::Any;
 use rand::SeedableRng;
 use sos_core::camera::Vec3;
 use sos_core::nn::{Adam, Param};
-use sos_core::plugin::{FieldTape, RadianceField};
+use sos_core::plugin::{state, FieldTape, RadianceField};
 use sos_core::render::contraction::Contraction;
 
 use super::coarse_fine::{CoarseFine, Level};
@@ -98,13 +98,7 @@ impl RadianceField for NerfNet {
         self.apply_gradients(lr_factor);
     }
 
-    fn gradients_finite(&self) -> bool {
-        self.mlp.gradients_finite()
-    }
-
-    fn discard_gradients(&mut self) {
-        self.mlp.zero_grad();
-    }
+    crate::nerf::network_methods!();
 
     fn seg_input_dim(&self) -> usize {
         self.mlp.width() + self.mlp.pe_dim()
@@ -112,30 +106,6 @@ impl RadianceField for NerfNet {
 
     fn seg_input(&self, positions: &[Vec3], out: &mut [f32]) {
         self.mlp.features(&self.coords(positions), out);
-    }
-
-    fn save_state(&self) -> Vec<u8> {
-        write_params(&[&self.mlp])
-    }
-
-    fn load_state(&mut self, bytes: &[u8]) -> Result<(), sos_core::error::StateError> {
-        read_params(bytes, &mut [&mut self.mlp])
-    }
-
-    fn num_parameters(&self) -> usize {
-        self.mlp.num_parameters()
-    }
-
-    fn parameters(&self) -> Vec<f32> {
-        mlp_parameters(&[&self.mlp])
-    }
-
-    fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
-        set_mlp_parameters(&mut [&mut self.mlp], values)
-    }
-
-    fn gradients(&self) -> Vec<f32> {
-        mlp_gradients(&[&self.mlp])
     }
 
     fn frozen_pass(&self) -> Option<&dyn sos_core::plugin::FrozenPass> {
@@ -196,39 +166,26 @@ pub fn set_mlp_parameters(nets: &mut [&mut NerfMlp], values: &[f32]) -> Result<(
     })
 }
 
-/// Writes networks as: `u64` header length, a JSON header of parameter sizes, then every
-/// parameter's values as little-endian `f32` in [`NerfMlp::params`] order.
+/// Writes networks as a [`sos_core::plugin::state`] whose JSON header lists the parameter sizes,
+/// then every parameter's values in [`NerfMlp::params`] order.
 pub fn write_params(nets: &[&NerfMlp]) -> Vec<u8> {
     let sizes: Vec<Vec<usize>> = nets.iter().map(|m| m.params().iter().map(|p| p.len()).collect()).collect();
-    let header = serde_json::json!({ "format": "nerf-params-1", "sizes": sizes }).to_string();
-    let total: usize = sizes.iter().flatten().sum();
-    let mut out = Vec::with_capacity(8 + header.len() + 4 * total);
-    out.extend_from_slice(&(header.len() as u64).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
-    for m in nets {
-        for p in m.params() {
-            for v in &p.value {
-                out.extend_from_slice(&v.to_le_bytes());
-            }
-        }
-    }
-    out
+    let header = serde_json::json!({ "format": "nerf-params-1", "sizes": sizes });
+    let values: Vec<&[f32]> = nets.iter().flat_map(|m| m.params()).map(|p| &p.value[..]).collect();
+    state::write(&header, &values)
 }
 
 /// Restores networks written by [`write_params`]; the sizes must match the configured networks.
 pub fn read_params(bytes: &[u8], nets: &mut [&mut NerfMlp]) -> Result<(), sos_core::error::StateError> {
     use sos_core::error::StateError;
-    let kind = || "nerf".to_string();
-    let truncated = || StateError::Truncated { kind: kind() };
-    let malformed = |e: serde_json::Error| StateError::Malformed { kind: kind(), reason: format!("header: {e}") };
-    let len = u64::from_le_bytes(bytes.get(..8).ok_or_else(truncated)?.try_into().map_err(|_| truncated())?) as usize;
-    let header: serde_json::Value =
-        serde_json::from_slice(bytes.get(8..8usize.saturating_add(len)).ok_or_else(truncated)?).map_err(malformed)?;
-    let sizes: Vec<Vec<usize>> = serde_json::from_value(header["sizes"].clone()).map_err(malformed)?;
+    let kind = "nerf";
+    let (header, body) = state::read(kind, bytes)?;
+    let sizes: Vec<Vec<usize>> = serde_json::from_value(header["sizes"].clone())
+        .map_err(|e| StateError::Malformed { kind: kind.into(), reason: format!("header: {e}") })?;
     let want: Vec<Vec<usize>> = nets.iter().map(|m| m.params().iter().map(|p| p.len()).collect()).collect();
     if sizes != want {
         return Err(StateError::Mismatch {
-            kind: kind(),
+            kind: kind.into(),
             reason: format!(
                 "it holds {} network(s) with {} parameters but the config builds {} with {} \
                  (were depth, width, frequencies or `hierarchical` changed?)",
@@ -239,19 +196,14 @@ pub fn read_params(bytes: &[u8], nets: &mut [&mut NerfMlp]) -> Result<(), sos_co
             ),
         });
     }
-    let mut body = &bytes[8 + len..];
-    let total: usize = sizes.iter().flatten().sum();
-    if body.len() != 4 * total {
-        return Err(truncated());
-    }
+    let values = state::values(kind, body, sizes.iter().flatten().sum())?;
+    let mut rest = &values[..];
     for m in nets.iter_mut() {
         for p in m.params_mut() {
-            let (chunk, rest) = body.split_at(4 * p.len());
-            for (v, b) in p.value.iter_mut().zip(chunk.chunks_exact(4)) {
-                *v = f32::from_le_bytes(b.try_into().expect("4 bytes"));
-            }
+            let (chunk, tail) = rest.split_at(p.len());
+            p.value.copy_from_slice(chunk);
             Param::zero_grad(p);
-            body = rest;
+            rest = tail;
         }
     }
     Ok(())

@@ -20,13 +20,13 @@ mod field;
 pub(crate) mod limits;
 pub mod network;
 
-use serde::{Deserialize, Serialize};
 use sos_core::error::BuildError;
 use sos_core::plugin::field::Hierarchical;
 use sos_core::plugin::{RadianceField, RadianceFieldConfig};
 use sos_core::render::contraction::Contraction;
 use sos_core::scene::SceneExtent;
 
+pub(crate) use coarse_fine::network_methods;
 pub use coarse_fine::{CoarseFine, Level};
 pub use field::{
     mlp_gradients, mlp_parameters, normalised_coords, read_params, set_mlp_parameters, write_params, NerfField, NerfNet,
@@ -34,33 +34,72 @@ pub use field::{
 use limits::Limits;
 pub use network::{DensityActivation, NerfMlp, NerfShape, NerfTape};
 
-/// Settings of the `nerf` field.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct NerfConfig {
-    /// Coarse network + importance sampling (the reference); `false` uses the fine network
-    /// alone on occupancy-skipped candidates.
-    pub hierarchical: bool,
-    /// Stratified samples per ray of the coarse pass.
-    pub coarse_samples: usize,
-    /// Importance samples per ray added for the fine pass.
-    pub fine_samples: usize,
-    /// Positional-encoding octaves of the position.
-    pub pos_frequencies: usize,
-    /// Positional-encoding octaves of the view direction.
-    pub dir_frequencies: usize,
-    /// Trunk layers.
-    pub depth: usize,
-    /// Trunk width.
-    pub width: usize,
-    /// Trunk layer that also reads the encoded position (0 = no skip).
-    pub skip: usize,
-    /// Width of the view-dependent colour branch.
-    pub view_width: usize,
-    /// Density activation: `relu` (the reference) or `softplus`.
-    pub density_activation: DensityActivation,
-    /// Adam learning rate (decayed by the stage-1 schedule).
-    pub lr: f32,
+/// Declares a field config with the settings of a NeRF-style field (sampling, network sizes,
+/// density activation, learning rate), each a `[field]` key, plus the config's own fields,
+/// whose keys come after the sampling ones. Unknown keys are refused, and
+/// `NerfConfig::from(&config)` gives the settings of one network and of the sampling.
+macro_rules! nerf_settings {
+    (
+        $(#[$meta:meta])*
+        pub struct $name:ident {
+            $($(#[$own_meta:meta])* pub $own:ident: $own_ty:ty,)*
+        }
+    ) => {
+        $(#[$meta])*
+        #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+        #[serde(default, deny_unknown_fields)]
+        pub struct $name {
+            /// Coarse network + importance sampling (the reference); `false` uses the fine
+            /// network alone on occupancy-skipped candidates.
+            pub hierarchical: bool,
+            /// Stratified samples per ray of the coarse pass.
+            pub coarse_samples: usize,
+            /// Importance samples per ray added for the fine pass.
+            pub fine_samples: usize,
+            $($(#[$own_meta])* pub $own: $own_ty,)*
+            /// Positional-encoding octaves of the position.
+            pub pos_frequencies: usize,
+            /// Positional-encoding octaves of the view direction.
+            pub dir_frequencies: usize,
+            /// Trunk layers.
+            pub depth: usize,
+            /// Trunk width.
+            pub width: usize,
+            /// Trunk layer that also reads the encoded input (0 = no skip).
+            pub skip: usize,
+            /// Width of the view-dependent colour branch.
+            pub view_width: usize,
+            /// Density activation: `relu` (the reference) or `softplus`.
+            pub density_activation: $crate::nerf::DensityActivation,
+            /// Adam learning rate (decayed by the stage-1 schedule).
+            pub lr: f32,
+        }
+
+        impl From<&$name> for $crate::nerf::NerfConfig {
+            fn from(c: &$name) -> Self {
+                $crate::nerf::NerfConfig {
+                    hierarchical: c.hierarchical,
+                    coarse_samples: c.coarse_samples,
+                    fine_samples: c.fine_samples,
+                    pos_frequencies: c.pos_frequencies,
+                    dir_frequencies: c.dir_frequencies,
+                    depth: c.depth,
+                    width: c.width,
+                    skip: c.skip,
+                    view_width: c.view_width,
+                    density_activation: c.density_activation,
+                    lr: c.lr,
+                }
+            }
+        }
+    };
+}
+
+pub(crate) use nerf_settings;
+
+nerf_settings! {
+    /// Settings of the `nerf` field.
+    pub struct NerfConfig {}
 }
 
 impl Default for NerfConfig {

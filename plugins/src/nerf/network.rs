@@ -13,6 +13,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sos_core::camera::Vec3;
 use sos_core::encoding::{positional_encoding, positional_encoding_dim};
+use sos_core::nn::activation::{sigmoid, softplus};
 use sos_core::nn::{add_column_sums, Activation, Linear, MatRef, Mlp, MlpTape, Param};
 
 /// Rows per block of the forward and backward passes.
@@ -38,13 +39,7 @@ impl DensityActivation {
     pub fn apply(self, raw: f32) -> f32 {
         let s = match self {
             DensityActivation::Relu => raw.max(0.0),
-            DensityActivation::Softplus => {
-                if raw > 20.0 {
-                    raw
-                } else {
-                    raw.exp().ln_1p()
-                }
-            }
+            DensityActivation::Softplus => softplus(raw),
         };
         // `f32::max` returns the other operand for NaN, so NaN becomes 0 here (`clamp` would
         // keep the NaN).
@@ -68,7 +63,7 @@ impl DensityActivation {
                 if raw >= MAX_DENSITY || raw.is_nan() {
                     0.0
                 } else {
-                    1.0 / (1.0 + (-raw).exp())
+                    sigmoid(raw)
                 }
             }
         }
@@ -581,9 +576,10 @@ mod tests {
         }
     }
 
-    #[test]
-    fn forward_density_and_features_agree_across_blocks() {
-        let shape = NerfShape {
+    /// A network small enough to run past one block of rows quickly: 3 trunk layers of 8 with a
+    /// skip, a 4-wide view branch.
+    fn small_shape() -> NerfShape {
+        NerfShape {
             in_dim: 3,
             pos_frequencies: 3,
             dir_frequencies: 2,
@@ -591,7 +587,12 @@ mod tests {
             width: 8,
             skip: Some(2),
             view_width: 4,
-        };
+        }
+    }
+
+    #[test]
+    fn forward_density_and_features_agree_across_blocks() {
+        let shape = small_shape();
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
         let m = NerfMlp::new(shape, DensityActivation::Softplus, &mut rng);
         let n = CHUNK + 19;
@@ -622,15 +623,7 @@ mod tests {
     /// over those points bit for bit (rows from one batch serve another batch's order).
     #[test]
     fn colour_from_kept_trunk_rows_matches_forward() {
-        let shape = NerfShape {
-            in_dim: 3,
-            pos_frequencies: 3,
-            dir_frequencies: 2,
-            depth: 3,
-            width: 8,
-            skip: Some(2),
-            view_width: 4,
-        };
+        let shape = small_shape();
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
         let m = NerfMlp::new(shape, DensityActivation::Softplus, &mut rng);
         let n = 2 * CHUNK + 37;

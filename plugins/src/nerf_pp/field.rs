@@ -11,9 +11,7 @@ use sos_core::plugin::{FieldTape, RadianceField};
 use sos_core::render::contraction::Contraction;
 
 use super::NerfPpConfig;
-use crate::nerf::{
-    mlp_gradients, mlp_parameters, read_params, set_mlp_parameters, write_params, CoarseFine, Level, NerfMlp, NerfTape,
-};
+use crate::nerf::{CoarseFine, Level, NerfConfig, NerfMlp, NerfTape};
 
 /// How world points map to the networks.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -283,13 +281,7 @@ impl RadianceField for NerfPpNet {
         }
     }
 
-    fn gradients_finite(&self) -> bool {
-        self.mlps().iter().all(|m| m.gradients_finite())
-    }
-
-    fn discard_gradients(&mut self) {
-        self.mlps_mut().into_iter().for_each(NerfMlp::zero_grad);
-    }
+    crate::nerf::network_methods!();
 
     fn seg_input_dim(&self) -> usize {
         self.fg.width() + positional_encoding_dim(3, self.fg.pos_frequencies)
@@ -306,26 +298,6 @@ impl RadianceField for NerfPpNet {
         self.encode_positions(positions, out);
     }
 
-    fn save_state(&self) -> Vec<u8> {
-        write_params(&self.mlps())
-    }
-
-    fn load_state(&mut self, bytes: &[u8]) -> Result<(), sos_core::error::StateError> {
-        read_params(bytes, &mut self.mlps_mut())
-    }
-
-    fn num_parameters(&self) -> usize {
-        self.mlps().iter().map(|m| m.num_parameters()).sum()
-    }
-    fn parameters(&self) -> Vec<f32> {
-        mlp_parameters(&self.mlps())
-    }
-    fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
-        set_mlp_parameters(&mut self.mlps_mut(), values)
-    }
-    fn gradients(&self) -> Vec<f32> {
-        mlp_gradients(&self.mlps())
-    }
     fn frozen_pass(&self) -> Option<&dyn sos_core::plugin::FrozenPass> {
         Some(self)
     }
@@ -408,7 +380,7 @@ pub type NerfPpField = CoarseFine<NerfPpNet>;
 impl CoarseFine<NerfPpNet> {
     /// Builds both levels.
     pub fn new(config: NerfPpConfig, space: Space, seed: u64) -> Self {
-        CoarseFine::build(seed, config.as_nerf().sampling(), |seed| NerfPpNet::new(&config, space, seed))
+        CoarseFine::build(seed, NerfConfig::from(&config).sampling(), |seed| NerfPpNet::new(&config, space, seed))
     }
 
     /// Whether a background network exists.

@@ -32,7 +32,7 @@ use sos_core::render::contraction::Contraction;
 use sos_core::scene::SceneExtent;
 
 use crate::nerf::limits::Limits;
-use crate::nerf::{DensityActivation, NerfConfig, NerfShape};
+use crate::nerf::{nerf_settings, DensityActivation, NerfConfig, NerfShape};
 pub use field::{NerfPpField, NerfPpNet, Space};
 
 /// Whether the background network exists.
@@ -45,34 +45,14 @@ pub enum Background {
     Off,
 }
 
-/// Settings of the `nerf++` field.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct NerfPpConfig {
-    /// Coarse networks + importance sampling (NeRF++); `false` uses the fine networks alone.
-    pub hierarchical: bool,
-    /// Stratified samples per ray of the coarse pass (half inside the sphere, half outside).
-    pub coarse_samples: usize,
-    /// Importance samples per ray added for the fine pass.
-    pub fine_samples: usize,
-    /// Background network: `auto` (unbounded scenes only) or `off`.
-    pub background: Background,
-    /// Positional-encoding octaves of the position (both networks).
-    pub pos_frequencies: usize,
-    /// Positional-encoding octaves of the view direction.
-    pub dir_frequencies: usize,
-    /// Trunk layers (both networks).
-    pub depth: usize,
-    /// Trunk width.
-    pub width: usize,
-    /// Trunk layer that also reads the encoded input (0 = none; NeRF++ uses 4).
-    pub skip: usize,
-    /// Width of the view branch.
-    pub view_width: usize,
-    /// Density activation.
-    pub density_activation: DensityActivation,
-    /// Adam learning rate.
-    pub lr: f32,
+nerf_settings! {
+    /// Settings of the `nerf++` field. The network settings apply to the foreground and the
+    /// background network alike (NeRF++ uses `skip = 4`), and the coarse pass's stratified
+    /// samples lie half inside the sphere, half outside.
+    pub struct NerfPpConfig {
+        /// Background network: `auto` (unbounded scenes only) or `off`.
+        pub background: Background,
+    }
 }
 
 impl Default for NerfPpConfig {
@@ -95,32 +75,14 @@ impl Default for NerfPpConfig {
 }
 
 impl NerfPpConfig {
-    /// The settings of each network and of the sampling, as a `nerf` config (NeRF++ is a NeRF
-    /// per region).
-    pub fn as_nerf(&self) -> NerfConfig {
-        NerfConfig {
-            hierarchical: self.hierarchical,
-            coarse_samples: self.coarse_samples,
-            fine_samples: self.fine_samples,
-            pos_frequencies: self.pos_frequencies,
-            dir_frequencies: self.dir_frequencies,
-            depth: self.depth,
-            width: self.width,
-            skip: self.skip,
-            view_width: self.view_width,
-            density_activation: self.density_activation,
-            lr: self.lr,
-        }
-    }
-
     /// The network sizes for inputs of `in_dim` coordinates.
     pub fn shape(&self, in_dim: usize) -> NerfShape {
-        NerfShape { in_dim, ..self.as_nerf().shape() }
+        NerfShape { in_dim, ..NerfConfig::from(self).shape() }
     }
 
     /// Checks the ranges the types cannot express.
     pub fn validate(&self) -> Result<(), BuildError> {
-        LIMITS.check(&self.as_nerf())
+        LIMITS.check(&self.into())
     }
 }
 

@@ -3,7 +3,8 @@
 use rayon::prelude::*;
 use sos_core::camera::Vec3;
 use sos_core::encoding::{positional_encoding, positional_encoding_dim, sh_basis, sh_coefficients};
-use sos_core::plugin::{CoarseToFine, FieldTape, RadianceField, Regularized};
+use sos_core::nn::activation::{sigmoid, softplus};
+use sos_core::plugin::{state, CoarseToFine, FieldTape, RadianceField, Regularized};
 use sos_core::render::contraction::Contraction;
 use sos_core::scene::SceneExtent;
 
@@ -32,18 +33,6 @@ pub struct VoxelGridField {
     n_sh: usize,
     /// Index into the upsampling schedule of the next growth.
     next_growth: usize,
-}
-
-fn softplus(x: f32) -> f32 {
-    if x > 20.0 {
-        x
-    } else {
-        x.exp().ln_1p()
-    }
-}
-
-fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
 }
 
 impl VoxelGridField {
@@ -310,48 +299,31 @@ impl RadianceField for VoxelGridField {
             "res": self.grid.res,
             "channels": self.grid.channels,
             "next_growth": self.next_growth,
-        })
-        .to_string();
-        let mut out = Vec::with_capacity(8 + header.len() + self.grid.data.len() * 4);
-        out.extend_from_slice(&(header.len() as u64).to_le_bytes());
-        out.extend_from_slice(header.as_bytes());
-        for v in &self.grid.data {
-            out.extend_from_slice(&v.to_le_bytes());
-        }
-        out
+        });
+        state::write(&header, &[&self.grid.data])
     }
 
     fn load_state(&mut self, bytes: &[u8]) -> Result<(), sos_core::error::StateError> {
         use sos_core::error::StateError;
-        let kind = || "voxel-grid".to_string();
-        let too_short = || StateError::Truncated { kind: kind() };
-        let malformed = |reason: String| StateError::Malformed { kind: kind(), reason };
-        let len = u64::from_le_bytes(bytes.get(..8).ok_or_else(too_short)?.try_into().expect("8 bytes")) as usize;
-        let header: serde_json::Value =
-            serde_json::from_slice(bytes.get(8..8usize.saturating_add(len)).ok_or_else(too_short)?)
-                .map_err(|e| malformed(format!("header: {e}")))?;
+        let kind = "voxel-grid";
+        let malformed = |reason: String| StateError::Malformed { kind: kind.into(), reason };
+        let (header, body) = state::read(kind, bytes)?;
         let res: [usize; 3] =
             serde_json::from_value(header["res"].clone()).map_err(|e| malformed(format!("resolution: {e}")))?;
         let channels =
             header["channels"].as_u64().ok_or_else(|| malformed("the header has no channel count".into()))? as usize;
         if channels != self.grid.channels {
             return Err(StateError::Mismatch {
-                kind: kind(),
+                kind: kind.into(),
                 reason: format!(
                     "it has {channels} channels per vertex but the config implies {} (sh_degree changed?)",
                     self.grid.channels
                 ),
             });
         }
-        let body = &bytes[8 + len..];
-        let n = res[0] * res[1] * res[2] * channels;
-        if body.len() != n * 4 {
-            return Err(too_short());
-        }
+        let values = state::values(kind, body, res[0] * res[1] * res[2] * channels)?;
         self.grow_to(res);
-        for (v, b) in self.grid.data.iter_mut().zip(body.chunks_exact(4)) {
-            *v = f32::from_le_bytes(b.try_into().expect("4 bytes"));
-        }
+        self.grid.data.copy_from_slice(&values);
         self.next_growth = header["next_growth"].as_u64().unwrap_or(0) as usize;
         Ok(())
     }

@@ -30,13 +30,16 @@ pub enum Activation {
     Softplus,
 }
 
+/// The logistic function `1 / (1 + e^{−x})` ([`Activation::Sigmoid`]).
 #[inline(always)]
-fn sigmoid(x: f32) -> f32 {
+pub fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 
+/// `ln(1 + e^x)`, and `x` itself above 20 like PyTorch's default threshold
+/// ([`Activation::Softplus`]).
 #[inline(always)]
-fn softplus(x: f32) -> f32 {
+pub fn softplus(x: f32) -> f32 {
     if x > 20.0 {
         x
     } else {

@@ -26,6 +26,22 @@ pub struct FeatureMap {
     pub saliency: Option<Vec<f32>>,
 }
 
+impl FeatureMap {
+    /// The map of an image an extractor cannot read (no pixels, or a buffer of the wrong
+    /// length): one cell of `channels` zeros, a descriptor of `cls_len` zeros and zero
+    /// saliency.
+    pub fn zeros(channels: usize, cls_len: usize) -> FeatureMap {
+        FeatureMap {
+            channels,
+            height: 1,
+            width: 1,
+            data: vec![0.0; channels],
+            cls: vec![0.0; cls_len],
+            saliency: Some(vec![0.0]),
+        }
+    }
+}
+
 /// A frozen 2D feature extractor (hot path).
 pub trait FeatureExtractor: Send + Sync {
     /// Extracts features of each image, one map per image in order. Images may have any

@@ -149,6 +149,60 @@ pub trait RadianceField: Send + Sync {
     }
 }
 
+/// Writes, inside a wrapper field's `impl RadianceField` block, the required methods that pass
+/// on to the wrapped field unchanged: all but `forward`, `backward` and `step`, which the
+/// wrapper writes itself. `$inner` is the member of `self` that holds the wrapped field
+/// (`inner` for `self.inner`, `0` for `self.0`). The capability getters keep their defaults
+/// unless the wrapper writes them.
+#[macro_export]
+macro_rules! pass_on_field_methods {
+    ($inner:tt) => {
+        fn density(&self, positions: &[$crate::camera::Vec3], density: &mut [f32]) {
+            self.$inner.density(positions, density)
+        }
+
+        fn gradients_finite(&self) -> bool {
+            self.$inner.gradients_finite()
+        }
+
+        fn discard_gradients(&mut self) {
+            self.$inner.discard_gradients()
+        }
+
+        fn seg_input_dim(&self) -> usize {
+            self.$inner.seg_input_dim()
+        }
+
+        fn seg_input(&self, positions: &[$crate::camera::Vec3], out: &mut [f32]) {
+            self.$inner.seg_input(positions, out)
+        }
+
+        fn save_state(&self) -> Vec<u8> {
+            self.$inner.save_state()
+        }
+
+        fn load_state(&mut self, bytes: &[u8]) -> Result<(), $crate::error::StateError> {
+            self.$inner.load_state(bytes)
+        }
+
+        fn num_parameters(&self) -> usize {
+            self.$inner.num_parameters()
+        }
+
+        fn parameters(&self) -> Vec<f32> {
+            self.$inner.parameters()
+        }
+
+        fn set_parameters(&mut self, values: &[f32]) -> Result<(), $crate::error::StateError> {
+            self.$inner.set_parameters(values)
+        }
+
+        fn gradients(&self) -> Vec<f32> {
+            self.$inner.gradients()
+        }
+    };
+}
+
 /// Capability: NeRF's hierarchical sampling (see [`Hierarchical`]).
 pub trait HierarchicalSampling: Send + Sync {
     /// Samples the renderer draws for the proposal and for the field.

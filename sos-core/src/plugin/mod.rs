@@ -6,6 +6,7 @@ pub mod extractor;
 pub mod field;
 pub mod loss;
 pub mod miner;
+pub mod state;
 
 pub use dataset::DatasetConfig;
 pub use extractor::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};

@@ -1,4 +1,5 @@
-//! Reference fixtures are JSON files whose arrays are `{"shape": [...], "data": [...]}`.
+//! Reference fixtures are JSON files whose arrays are `{"shape": [...], "data": [...]}`; the
+//! crates' tests read them here.
 
 /// A row-major array from a fixture file.
 #[derive(Debug, Clone, PartialEq)]
@@ -16,13 +17,15 @@ impl From<&serde_json::Value> for Array {
             .expect("fixture array has a shape")
             .iter()
             .map(|d| d.as_u64().expect("shape entries are integers") as usize)
-            .collect();
+            .collect::<Vec<_>>();
         let data = v["data"]
             .as_array()
             .expect("fixture array has data")
             .iter()
             .map(|x| x.as_f64().expect("data entries are numbers"))
-            .collect();
+            .collect::<Vec<_>>();
+        let numel: usize = shape.iter().product();
+        assert_eq!(numel, data.len(), "fixture array of shape {shape:?} holds {} values", data.len());
         Array { shape, data }
     }
 }

@@ -3,13 +3,13 @@
 //! and hard shadows cast by the primitives (not by walls or ceiling, which would block the
 //! light), as in the built-in world.
 
-use sos_core::camera::{axpy, dot, Vec3};
+use sos_core::camera::{axpy, Vec3};
 
 use super::super::geometry::{room_exit, Hit, T_MIN};
 use super::super::material::Material;
 use super::super::shape::{may_hit, Shape};
-use super::super::texture::{scale, Rgb};
-use super::super::world::{Sample, Trace};
+use super::super::texture::Rgb;
+use super::super::world::{shade, Sample, Trace};
 use super::environment::Environment;
 
 /// One primitive of the world.
@@ -130,12 +130,8 @@ impl RandomWorld {
 
     /// Colour of a (non-sky) surface point `p` with normal `n` and albedo `albedo`.
     fn shade(&self, p: Vec3, n: Vec3, albedo: Rgb) -> Rgb {
-        let mut light = self.ambient;
-        let lambert = dot(n, self.light);
-        if lambert > 0.0 && !self.blocked(axpy(p, 1e-3, n), self.light) {
-            light += self.diffuse * lambert;
-        }
-        scale(albedo, light).map(|v| v.min(1.0))
+        let lit = || !self.blocked(axpy(p, 1e-3, n), self.light);
+        shade(albedo, n, self.light, self.ambient, self.diffuse, lit)
     }
 
     fn sky(&self, d: Vec3) -> Rgb {
