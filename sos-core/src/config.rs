@@ -340,6 +340,39 @@ impl Default for RenderConfig {
     }
 }
 
+/// Upper bounds of the counts that drive loops and allocations: far above any useful setting,
+/// low enough that a typo (`1e9`) is refused at once instead of hanging the run or failing
+/// to allocate.
+pub const MAX_STEPS: usize = 10_000_000;
+/// Upper bound of `train.rays_per_step` (a step's buffers grow with rays x samples).
+pub const MAX_RAYS_PER_STEP: usize = 1 << 20;
+/// Upper bound of `train.samples_per_ray`.
+pub const MAX_SAMPLES_PER_RAY: usize = 4096;
+/// Upper bound of `segment.patches` per step.
+pub const MAX_PATCHES: usize = 1024;
+/// Upper bound of `masks.restarts` (each restart is a full k-means of every pixel).
+pub const MAX_RESTARTS: usize = 1000;
+/// Upper bound of the head's layer widths.
+pub const MAX_HEAD_WIDTH: usize = 4096;
+/// Upper bound of the head's hidden layers.
+pub const MAX_HEAD_LAYERS: usize = 32;
+/// Upper bound of `render.chunk` (rays rendered together).
+pub const MAX_CHUNK: usize = 1 << 22;
+
+/// The dotted key and value of the first NaN or infinite float in `table` (arrays index as
+/// `key[i]`), searched in key order.
+fn first_non_finite(table: &toml::Table, prefix: &str) -> Option<(String, f64)> {
+    fn walk(value: &toml::Value, key: String) -> Option<(String, f64)> {
+        match value {
+            toml::Value::Float(f) if !f.is_finite() => Some((key, *f)),
+            toml::Value::Table(t) => first_non_finite(t, &key),
+            toml::Value::Array(items) => items.iter().enumerate().find_map(|(i, v)| walk(v, format!("{key}[{i}]"))),
+            _ => None,
+        }
+    }
+    table.iter().find_map(|(k, v)| walk(v, if prefix.is_empty() { k.clone() } else { format!("{prefix}.{k}") }))
+}
+
 impl RunConfig {
     /// Reads and validates a config file.
     pub fn load(path: &Path) -> Result<RunConfig, ConfigError> {
@@ -350,8 +383,18 @@ impl RunConfig {
 
     /// Parses config text; `path` is only used in messages.
     pub fn parse(text: &str, path: &Path) -> Result<RunConfig, ConfigError> {
-        let cfg: RunConfig = toml::from_str(text)
-            .map_err(|e| ConfigError::Parse { path: path.to_path_buf(), message: e.to_string() })?;
+        let parse_error = |e: toml::de::Error| ConfigError::Parse { path: path.to_path_buf(), message: e.to_string() };
+        let table: toml::Table = toml::from_str(text).map_err(parse_error)?;
+        // Every number of every section and plugin table is a size, a weight, a distance or a
+        // rate: none means anything as NaN or infinity, and each would train nonsense quietly.
+        if let Some((key, value)) = first_non_finite(&table, "") {
+            return Err(ConfigError::Invalid {
+                path: path.to_path_buf(),
+                key,
+                reason: format!("must be a finite number, not {value}"),
+            });
+        }
+        let cfg: RunConfig = toml::from_str(text).map_err(parse_error)?;
         cfg.validate(path)?;
         Ok(cfg)
     }
@@ -364,11 +407,14 @@ impl RunConfig {
             reason: reason.into(),
         };
         let t = &self.train;
-        if t.rays_per_step == 0 {
-            return Err(invalid("train.rays_per_step", "must be at least 1"));
+        if !(1..=MAX_RAYS_PER_STEP).contains(&t.rays_per_step) {
+            return Err(invalid("train.rays_per_step", &format!("must be in 1..={MAX_RAYS_PER_STEP}")));
         }
-        if t.samples_per_ray < 2 {
-            return Err(invalid("train.samples_per_ray", "must be at least 2"));
+        if !(2..=MAX_SAMPLES_PER_RAY).contains(&t.samples_per_ray) {
+            return Err(invalid("train.samples_per_ray", &format!("must be in 2..={MAX_SAMPLES_PER_RAY}")));
+        }
+        if t.steps > MAX_STEPS {
+            return Err(invalid("train.steps", &format!("must be at most {MAX_STEPS}")));
         }
         if !(t.final_lr_factor > 0.0 && t.final_lr_factor <= 1.0) {
             return Err(invalid("train.final_lr_factor", "must be in (0, 1]"));
@@ -395,9 +441,12 @@ impl RunConfig {
             return Err(invalid("train.occupancy_alpha", "must be in [0, 1)"));
         }
         let g = &self.segment;
+        if g.steps > MAX_STEPS {
+            return Err(invalid("segment.steps", &format!("must be at most {MAX_STEPS}")));
+        }
         if g.steps > 0 {
-            if g.patches == 0 {
-                return Err(invalid("segment.patches", "must be at least 1"));
+            if !(1..=MAX_PATCHES).contains(&g.patches) {
+                return Err(invalid("segment.patches", &format!("must be in 1..={MAX_PATCHES}")));
             }
             if !(2..=256).contains(&g.patch_size) {
                 return Err(invalid("segment.patch_size", "must be in 2..=256"));
@@ -421,11 +470,20 @@ impl RunConfig {
         if self.head.outputs == 0 || self.head.hidden.contains(&0) {
             return Err(invalid("head", "`outputs` and every `hidden` width must be at least 1"));
         }
+        if self.head.outputs > MAX_HEAD_WIDTH {
+            return Err(invalid("head.outputs", &format!("must be at most {MAX_HEAD_WIDTH}")));
+        }
+        if self.head.hidden.iter().any(|&w| w > MAX_HEAD_WIDTH) {
+            return Err(invalid("head.hidden", &format!("every width must be at most {MAX_HEAD_WIDTH}")));
+        }
+        if self.head.hidden.len() > MAX_HEAD_LAYERS {
+            return Err(invalid("head.hidden", &format!("at most {MAX_HEAD_LAYERS} hidden layers")));
+        }
         if !(2..=16).contains(&self.masks.clusters) {
             return Err(invalid("masks.clusters", "must be in 2..=16"));
         }
-        if self.masks.restarts == 0 {
-            return Err(invalid("masks.restarts", "must be at least 1"));
+        if !(1..=MAX_RESTARTS).contains(&self.masks.restarts) {
+            return Err(invalid("masks.restarts", &format!("must be in 1..={MAX_RESTARTS}")));
         }
         if !(self.masks.max_depth_jump >= 0.0 && self.masks.max_depth_jump.is_finite()) {
             return Err(invalid("masks.max_depth_jump", "must be zero (off) or positive, e.g. 0.1"));
@@ -450,8 +508,8 @@ impl RunConfig {
         if self.render.memory_gib.is_some_and(|g| !(g.is_finite() && g > 0.0 && g <= 1e6)) {
             return Err(invalid("render.memory_gib", "must be a positive number of GiB"));
         }
-        if self.render.chunk == 0 {
-            return Err(invalid("render.chunk", "must be at least 1"));
+        if !(1..=MAX_CHUNK).contains(&self.render.chunk) {
+            return Err(invalid("render.chunk", &format!("must be in 1..={MAX_CHUNK}")));
         }
         if self.name.is_empty() || self.name.contains(['/', '\\']) {
             return Err(invalid("name", "must be a non-empty file name without slashes"));

@@ -143,6 +143,14 @@ pub enum RunError {
         /// What is wrong and what to do.
         message: String,
     },
+    /// A run folder cannot be used.
+    #[error("run folder {path}: {message}")]
+    RunDir {
+        /// The folder.
+        path: PathBuf,
+        /// What is wrong and what to do.
+        message: String,
+    },
     /// Training diverged.
     #[error("training diverged: {0}")]
     Diverged(String),

@@ -48,6 +48,13 @@ pub fn load_with_head(session: &mut Session, path: Option<&Path>) -> Result<(Opt
     };
     let fail = |message: String| RunError::Checkpoint { path: path.clone(), message };
     let head = SegHead::from_bytes(bytes).map_err(|e| fail(format!("{e}; rerun `sos segment` to retrain the head")))?;
+    let non_finite =
+        head.mlp.layers.iter().flat_map(|l| l.weight.value.iter().chain(&l.bias.value)).any(|v| !v.is_finite());
+    if non_finite {
+        return Err(fail(format!(
+            "its `{HEAD_SECTION}` section holds a non-finite parameter; rerun `sos segment` to retrain the head"
+        )));
+    }
     let want_in = session.field.seg_input_dim();
     let want_out = session.config.head.outputs;
     if head.mlp.in_dim() != want_in || head.outputs() != want_out {

@@ -1,12 +1,28 @@
 //! Checkpoints: the step reached, the field's parameters and the config that produced them,
-//! written atomically (temporary file + rename) so an interrupted run never leaves a broken one.
+//! written atomically (temporary file + rename) so an interrupted run never leaves a broken one,
+//! and closed by a checksum of everything before it, so a flipped or lost byte is refused on
+//! load instead of restoring a damaged field.
 
 use std::io::Write;
 use std::path::Path;
 
 use crate::error::RunError;
 
-const MAGIC: &[u8; 8] = b"SOSCKPT1";
+/// Checkpoints with a trailing checksum.
+const MAGIC: &[u8; 8] = b"SOSCKPT2";
+/// Checkpoints without one (still read).
+const MAGIC_UNCHECKED: &[u8; 8] = b"SOSCKPT1";
+/// Bytes of the trailing checksum: FNV-1a, 64 bits, little-endian.
+const CHECKSUM_BYTES: usize = 8;
+
+/// FNV-1a (64 bits) of `bytes`: not a cryptographic hash, but any single flipped bit or byte
+/// changes it, which is what a checkpoint needs to catch damage on disk or in transfer.
+fn checksum(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3))
+}
+
+/// The suffix of a temporary checkpoint being written; a leftover one is from a killed run.
+pub const TEMPORARY_EXTENSION: &str = "tmp";
 
 /// What a checkpoint holds besides the field parameters.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -29,17 +45,21 @@ pub fn save(path: &Path, meta: &CheckpointMeta, sections: &[(&str, &[u8])]) -> R
     if let Some(parent) = path.parent() {
         std::fs::create_dir_all(parent).map_err(err)?;
     }
-    let tmp = path.with_extension("tmp");
+    let tmp = path.with_extension(TEMPORARY_EXTENSION);
+    let mut bytes = Vec::new();
+    let header = serde_json::to_vec(meta).expect("checkpoint meta serialises");
+    bytes.extend_from_slice(MAGIC);
+    write_block(&mut bytes, &header).map_err(err)?;
+    bytes.extend_from_slice(&(sections.len() as u64).to_le_bytes());
+    for (name, data) in sections {
+        write_block(&mut bytes, name.as_bytes()).map_err(err)?;
+        write_block(&mut bytes, data).map_err(err)?;
+    }
+    let sum = checksum(&bytes);
     {
         let mut f = std::io::BufWriter::new(std::fs::File::create(&tmp).map_err(err)?);
-        let header = serde_json::to_vec(meta).expect("checkpoint meta serialises");
-        f.write_all(MAGIC).map_err(err)?;
-        write_block(&mut f, &header).map_err(err)?;
-        f.write_all(&(sections.len() as u64).to_le_bytes()).map_err(err)?;
-        for (name, bytes) in sections {
-            write_block(&mut f, name.as_bytes()).map_err(err)?;
-            write_block(&mut f, bytes).map_err(err)?;
-        }
+        f.write_all(&bytes).map_err(err)?;
+        f.write_all(&sum.to_le_bytes()).map_err(err)?;
         f.into_inner().map_err(|e| err(e.into_error()))?.sync_all().map_err(err)?;
     }
     std::fs::rename(&tmp, path).map_err(err)
@@ -71,12 +91,26 @@ pub fn load(path: &Path) -> Result<Checkpoint, RunError> {
     let fail = |message: String| RunError::Checkpoint { path: path.to_path_buf(), message };
     let bytes = std::fs::read(path)
         .map_err(|e| fail(format!("{e}; run `sos train` first or pass the checkpoint of a finished run")))?;
-    if bytes.len() < 8 || &bytes[..8] != MAGIC {
-        return Err(fail("not a nerf-sos checkpoint".into()));
-    }
+    let bytes = match bytes.get(..8) {
+        Some(m) if m == MAGIC => {
+            let body =
+                bytes.len().checked_sub(CHECKSUM_BYTES).filter(|&n| n >= 8).ok_or_else(|| fail("truncated".into()))?;
+            let stored = read_u64(&bytes, body).ok_or_else(|| fail("truncated".into()))?;
+            if checksum(&bytes[..body]) != stored {
+                return Err(fail(
+                    "its checksum does not match its contents (the file is damaged or cut short); \
+                     rerun `sos train` to write it again"
+                        .into(),
+                ));
+            }
+            &bytes[..body]
+        }
+        Some(m) if m == MAGIC_UNCHECKED => &bytes[..],
+        _ => return Err(fail("not a nerf-sos checkpoint".into())),
+    };
     let mut pos = 8;
     let block = |pos: &mut usize| -> Result<Vec<u8>, RunError> {
-        let len = read_u64(&bytes, *pos).ok_or_else(|| fail("truncated".into()))? as usize;
+        let len = read_u64(bytes, *pos).ok_or_else(|| fail("truncated".into()))? as usize;
         let start = *pos + 8;
         let data = bytes.get(start..start.saturating_add(len)).ok_or_else(|| fail("truncated".into()))?;
         *pos = start + len;
@@ -84,7 +118,7 @@ pub fn load(path: &Path) -> Result<Checkpoint, RunError> {
     };
     let meta: CheckpointMeta =
         serde_json::from_slice(&block(&mut pos)?).map_err(|e| fail(format!("bad header: {e}")))?;
-    let n = read_u64(&bytes, pos).ok_or_else(|| fail("truncated".into()))? as usize;
+    let n = read_u64(bytes, pos).ok_or_else(|| fail("truncated".into()))? as usize;
     pos += 8;
     let mut sections = Vec::new();
     for _ in 0..n.min(64) {
@@ -114,7 +148,42 @@ mod tests {
         assert_eq!(c.section("field"), Some(&[1u8, 2, 3][..]));
         let bytes = std::fs::read(&path).unwrap();
         std::fs::write(&path, &bytes[..bytes.len() - 2]).unwrap();
+        let cut = load(&path).unwrap_err().to_string();
+        assert!(cut.contains("checksum") || cut.contains("truncated"), "{cut}");
+        std::fs::write(&path, &bytes[..12]).unwrap();
         assert!(load(&path).unwrap_err().to_string().contains("truncated"));
+        std::fs::write(&path, &bytes[..5]).unwrap();
+        assert!(load(&path).unwrap_err().to_string().contains("not a nerf-sos checkpoint"));
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn every_flipped_byte_is_caught() {
+        let dir = std::env::temp_dir().join(format!("sos-ckpt-flip-{}", std::process::id()));
+        let path = dir.join("c.bin");
+        let meta = CheckpointMeta { step: 3, field_kind: "k".into(), config: "y = 2".into(), extent: None };
+        save(&path, &meta, &[("field", &[9, 8, 7, 6, 5])]).unwrap();
+        let good = std::fs::read(&path).unwrap();
+        for i in 0..good.len() {
+            let mut bad = good.clone();
+            bad[i] ^= 0x10;
+            std::fs::write(&path, &bad).unwrap();
+            assert!(load(&path).is_err(), "a flipped byte at {i} of {} passed", good.len());
+        }
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn checkpoints_without_a_checksum_still_load() {
+        let dir = std::env::temp_dir().join(format!("sos-ckpt-v1-{}", std::process::id()));
+        let path = dir.join("c.bin");
+        let meta = CheckpointMeta { step: 1, field_kind: "k".into(), config: String::new(), extent: None };
+        save(&path, &meta, &[("field", &[1])]).unwrap();
+        let mut bytes = std::fs::read(&path).unwrap();
+        bytes.truncate(bytes.len() - CHECKSUM_BYTES);
+        bytes[..8].copy_from_slice(MAGIC_UNCHECKED);
+        std::fs::write(&path, &bytes).unwrap();
+        assert_eq!(load(&path).unwrap().section("field"), Some(&[1u8][..]));
         std::fs::remove_dir_all(dir).ok();
     }
 }

@@ -5,6 +5,7 @@ pub mod evaluate;
 pub mod face_pileup;
 pub mod observer;
 pub mod photometric;
+pub mod run_dir;
 pub mod session;
 
 pub use session::Session;

@@ -102,6 +102,12 @@ impl Session {
         BuildContext::new(&self.config_dir)
     }
 
+    /// Claims the run's folder before any work (see [`crate::train::run_dir`]); keep the claim
+    /// for as long as the run writes there.
+    pub fn claim_run_dir(&self) -> Result<crate::train::run_dir::RunDirClaim, RunError> {
+        crate::train::run_dir::RunDirClaim::claim(&self.run_dir, "output_dir")
+    }
+
     /// Path of the run's checkpoint.
     pub fn checkpoint_path(&self) -> PathBuf {
         self.run_dir.join("checkpoint.bin")
@@ -164,6 +170,14 @@ impl Session {
         }
         let state = ckpt.section("field").ok_or_else(|| fail("has no field section".into()))?;
         self.field.load_state(state).map_err(|e| fail(e.to_string()))?;
+        // A diverged run can have saved NaN or infinite parameters: training on from them, or
+        // rendering them, would only report nonsense.
+        if let Some(i) = self.field.parameters().iter().position(|v| !v.is_finite()) {
+            return Err(fail(format!(
+                "its `field` section holds a non-finite parameter (number {i}); the run that wrote it diverged: \
+                 start over without the checkpoint, with a lower learning rate"
+            )));
+        }
         self.step = ckpt.meta.step;
         self.bake_occupancy();
         Ok((ckpt, path))

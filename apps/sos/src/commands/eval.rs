@@ -13,6 +13,8 @@ use super::stage2;
 /// `sos eval`: PSNR/SSIM of the held-out views, and segmentation metrics when a head exists.
 pub fn run(config: &Path, checkpoint: Option<&Path>) -> anyhow::Result<()> {
     let mut session = Session::open(config)?;
+    // Refuses a folder another run uses, or one that cannot be written, before any work.
+    let _claim = session.claim_run_dir()?;
     let (loaded, ckpt_path) = load_with_head(&mut session, checkpoint)?;
     let eval = evaluate_views(&session, false)?;
     let mut report = serde_json::json!({

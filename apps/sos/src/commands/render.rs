@@ -15,6 +15,8 @@ use super::stage2;
 /// `sos render`: held-out views and the camera path, with masks when a head exists.
 pub fn run(config: &Path, checkpoint: Option<&Path>) -> anyhow::Result<()> {
     let mut session = Session::open(config)?;
+    // Refuses a folder another run uses, or one that cannot be written, before any work.
+    let _claim = session.claim_run_dir()?;
     let (loaded, _) = load_with_head(&mut session, checkpoint)?;
     let extractor = match &loaded {
         Some(_) => saliency_extractor(&session)?,

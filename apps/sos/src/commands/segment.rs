@@ -16,6 +16,8 @@ use super::stage2;
 pub fn run(config: &Path, checkpoint: Option<&Path>, masks_only: bool, progress: bool) -> anyhow::Result<()> {
     let started = Instant::now();
     let mut session = Session::open(config)?;
+    // Refuses a folder another run uses, or one that cannot be written, before any work.
+    let _claim = session.claim_run_dir()?;
     let (loaded, ckpt_path) = load_with_head(&mut session, checkpoint)?;
     eprintln!("loaded {} (stage 1 at step {})", ckpt_path.display(), session.step);
     let metrics_path = session.run_dir.join("metrics.json");

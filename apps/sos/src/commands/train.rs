@@ -18,6 +18,8 @@ use crate::console::Console;
 pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
     let started = Instant::now();
     let mut session = Session::open(config)?;
+    // Refuses a folder another run uses, or one that cannot be written, before any work.
+    let _claim = session.claim_run_dir()?;
     // Stage 2's teacher is loaded now: a missing weights file should not wait for stage 1.
     let segmenter = if session.config.segment.steps > 0 { Some(Segmenter::build(&session)?) } else { None };
     eprintln!(
@@ -113,6 +115,14 @@ fn record_warnings(stats: &StepStats, eval: &ImageEval, report: &mut serde_json:
 fn print_image_eval(eval: &ImageEval) {
     if eval.views.is_empty() {
         println!("no held-out views: PSNR and SSIM not measured (set the scene's hold-out, e.g. `hold_out_every`)");
+        return;
+    }
+    if ![eval.psnr, eval.psnr_mean_per_view, eval.ssim].iter().all(|v| v.is_finite()) {
+        println!(
+            "held-out PSNR and SSIM not measured: the field renders non-finite colours on {} views \
+             (it diverged; retrain with a lower learning rate)",
+            eval.views.len()
+        );
         return;
     }
     println!(
