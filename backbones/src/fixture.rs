@@ -4,7 +4,7 @@
 //!
 //! The repository keeps such a copy of the ViT fixtures (`fixtures/vit_tiny*/`) so that the
 //! parity tests run in a clone without the shared reference folder; the
-//! `vit_fixture_pack` tool of `sos-benchmarks` writes it from the reference files.
+//! `vit_fixture_pack` tool of `sos-tools` writes it from the reference files.
 
 use std::collections::BTreeMap;
 

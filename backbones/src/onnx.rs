@@ -178,7 +178,7 @@ impl OnnxModel {
         if !model.is_file() {
             return Err(resource(format!(
                 "ONNX model `{}` not found; export the backbone to ONNX (see backbones/README.md: \
-                 `torch.onnx.export`, or `sos-benchmarks`' `vit_onnx_export` for a DINO ViT checkpoint) \
+                 `torch.onnx.export`, or `sos-tools`' `vit_onnx_export` for a DINO ViT checkpoint) \
                  and set `model` in `[extractor]` to its path (a relative path is resolved against the \
                  config file's folder)",
                 model.display()

@@ -11,7 +11,7 @@ pub fn mix(a: Rgb, b: Rgb, t: f32) -> Rgb {
     [a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]), a[2] + t * (b[2] - a[2])]
 }
 
-/// Scales a colour: an [`Rgb`] is a [`Vec3`](sos_core::camera::Vec3), scaled as vectors are.
+/// Scales a colour (an `Rgb` is a `Vec3`, scaled as vectors are).
 pub use sos_core::camera::scale;
 
 /// A smoothed square wave in `[0, 1]` of period `period` (in the units of `x`); `softness`

@@ -24,7 +24,7 @@ pub fn write(header: &serde_json::Value, parts: &[&[f32]]) -> Vec<u8> {
     out
 }
 
-/// The header of a state [`write`] made and the bytes of its values. Errors name the field
+/// The header of a state [`write()`] made and the bytes of its values. Errors name the field
 /// `kind`: [`StateError::Truncated`] when the bytes end inside the header,
 /// [`StateError::Malformed`] when the header is not JSON.
 pub fn read<'a>(kind: &str, bytes: &'a [u8]) -> Result<(serde_json::Value, &'a [u8]), StateError> {

@@ -6,7 +6,8 @@ use serde::{Deserialize, Serialize};
 use crate::config::LossEntry;
 use crate::error::BuildError;
 use crate::plugin::{
-    ContrastiveLossConfig, FeatureExtractorConfig, PairMinerConfig, RadianceField, RadianceFieldConfig,
+    BuildContext, ContrastiveLossConfig, FeatureExtractor, FeatureExtractorConfig, PairMinerConfig, RadianceField,
+    RadianceFieldConfig,
 };
 use crate::registry::find;
 use crate::scene::SceneExtent;
@@ -50,6 +51,26 @@ impl RadianceFieldConfig for UnlinkedDefaultField {
 /// Default extractor config, if its kind is registered.
 pub fn extractor() -> Option<Box<dyn FeatureExtractorConfig>> {
     find::<dyn FeatureExtractorConfig>(DEFAULT_EXTRACTOR).map(|r| (r.default_config)())
+}
+
+/// The stage-2 teacher of a run: its `[extractor]` table, or [`DEFAULT_EXTRACTOR`]'s defaults;
+/// an error when neither is configured nor linked.
+pub fn build_extractor(
+    configured: Option<&dyn FeatureExtractorConfig>,
+    ctx: &BuildContext,
+) -> Result<Box<dyn FeatureExtractor>, BuildError> {
+    match configured {
+        Some(e) => e.build(ctx),
+        None => extractor().ok_or_else(|| not_linked("extractor", DEFAULT_EXTRACTOR, "extractor"))?.build(ctx),
+    }
+}
+
+/// The error for a stage-2 role with no table and no linked default.
+pub fn not_linked(role: &str, kind: &str, table: &str) -> BuildError {
+    BuildError::Resource {
+        kind: kind.into(),
+        message: format!("no `[{table}]` configured and the default `{kind}` {role} is not linked into this program"),
+    }
 }
 
 /// Default miner config, if its kind is registered.

@@ -513,21 +513,8 @@ pub fn saliency_extractor(session: &Session) -> Result<Option<Box<dyn FeatureExt
     if session.config.masks.foreground != ForegroundRule::Saliency {
         return Ok(None);
     }
-    let ctx = session.build_context();
-    let extractor = match &session.config.extractor {
-        Some(e) => e.build(&ctx)?,
-        None => crate::segment::defaults::extractor()
-            .ok_or_else(|| {
-                no_saliency(
-                    session,
-                    &format!(
-                        "no `[extractor]` is configured and `{}` is not linked",
-                        crate::segment::defaults::DEFAULT_EXTRACTOR
-                    ),
-                )
-            })?
-            .build(&ctx)?,
-    };
+    let extractor =
+        crate::segment::defaults::build_extractor(session.config.extractor.as_deref(), &session.build_context())?;
     Ok(Some(extractor))
 }
 

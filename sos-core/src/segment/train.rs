@@ -6,7 +6,7 @@ use std::time::Instant;
 use rand::SeedableRng;
 
 use crate::config::LossEntry;
-use crate::error::{BuildError, RunError};
+use crate::error::RunError;
 use crate::image::RgbImage;
 use crate::plugin::{ContrastiveLoss, FeatureMap, PairMiner, PatchBatch};
 use crate::render::composite::{is_hit, RayColour, RayGrad};
@@ -87,27 +87,17 @@ pub struct Stage2Timing {
     pub backward: f64,
 }
 
-fn missing(role: &str, kind: &str, table: &str) -> RunError {
-    RunError::Build(BuildError::Resource {
-        kind: kind.into(),
-        message: format!("no `[{table}]` configured and the default `{kind}` {role} is not linked into this program"),
-    })
-}
-
 impl Segmenter {
     /// Builds the head, teacher, miner and losses from the session's config.
     pub fn build(session: &Session) -> Result<Segmenter, RunError> {
         let cfg = &session.config;
         let ctx = session.build_context();
-        let extractor = match &cfg.extractor {
-            Some(e) => e.build(&ctx)?,
-            None => defaults::extractor()
-                .ok_or_else(|| missing("extractor", defaults::DEFAULT_EXTRACTOR, "extractor"))?
-                .build(&ctx)?,
-        };
+        let extractor = defaults::build_extractor(cfg.extractor.as_deref(), &ctx)?;
         let miner = match &cfg.miner {
             Some(m) => m.build()?,
-            None => defaults::miner().ok_or_else(|| missing("miner", defaults::DEFAULT_MINER, "miner"))?.build()?,
+            None => defaults::miner()
+                .ok_or_else(|| defaults::not_linked("miner", defaults::DEFAULT_MINER, "miner"))?
+                .build()?,
         };
         let default_losses;
         let entries: &[LossEntry] = if cfg.loss.is_empty() {

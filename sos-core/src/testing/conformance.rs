@@ -615,9 +615,8 @@ pub fn check_loss_kind(kind: &str) {
 struct Bare(Box<dyn RadianceField>);
 
 impl RadianceField for Bare {
-    fn density(&self, positions: &[Vec3], density: &mut [f32]) {
-        self.0.density(positions, density)
-    }
+    crate::pass_on_field_methods!(0);
+
     fn forward(
         &self,
         positions: &[Vec3],
@@ -640,35 +639,5 @@ impl RadianceField for Bare {
     }
     fn step(&mut self, lr_factor: f32) {
         self.0.step(lr_factor)
-    }
-    fn gradients_finite(&self) -> bool {
-        self.0.gradients_finite()
-    }
-    fn discard_gradients(&mut self) {
-        self.0.discard_gradients()
-    }
-    fn seg_input_dim(&self) -> usize {
-        self.0.seg_input_dim()
-    }
-    fn seg_input(&self, positions: &[Vec3], out: &mut [f32]) {
-        self.0.seg_input(positions, out)
-    }
-    fn save_state(&self) -> Vec<u8> {
-        self.0.save_state()
-    }
-    fn load_state(&mut self, bytes: &[u8]) -> Result<(), crate::error::StateError> {
-        self.0.load_state(bytes)
-    }
-    fn num_parameters(&self) -> usize {
-        self.0.num_parameters()
-    }
-    fn parameters(&self) -> Vec<f32> {
-        self.0.parameters()
-    }
-    fn set_parameters(&mut self, values: &[f32]) -> Result<(), crate::error::StateError> {
-        self.0.set_parameters(values)
-    }
-    fn gradients(&self) -> Vec<f32> {
-        self.0.gradients()
     }
 }
