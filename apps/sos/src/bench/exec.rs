@@ -46,9 +46,9 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
     let text = std::fs::read_to_string(&args.config).with_context(|| format!("reading {}", args.config.display()))?;
     let config = sos_core::config::RunConfig::parse(&text, &args.config)?;
     let mut session = Session::from_config(config, &args.config_dir)?;
-    let _claim = session.claim_run_dir()?;
     crate::commands::announce_resolved(&session)?;
     let segmenter = if session.config.segment.steps > 0 { Some(Segmenter::build(&session)?) } else { None };
+    let _claim = session.claim_run_dir()?;
     let mut timing = Timing { setup: started.elapsed().as_secs_f64(), ..Default::default() };
     let mut curves = CurveRecorder::new(args.curve_points, &session, segmenter.is_some());
 

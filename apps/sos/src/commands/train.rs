@@ -18,10 +18,11 @@ use crate::console::Console;
 pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
     let started = Instant::now();
     let mut session = Session::open(config)?;
-    // Refuses a folder another run uses, or one that cannot be written, before any work.
-    let _claim = session.claim_run_dir()?;
     // Stage 2's teacher is loaded now: a missing weights file should not wait for stage 1.
     let segmenter = if session.config.segment.steps > 0 { Some(Segmenter::build(&session)?) } else { None };
+    // Refuses a folder another run uses, or one that cannot be written, before any work (and
+    // after every config error, which leaves no folder behind).
+    let _claim = session.claim_run_dir()?;
     eprintln!(
         "scene `{}`: {} views ({} train, {} test), {}x{}; field `{}` with {} parameters",
         session.scene.name,
