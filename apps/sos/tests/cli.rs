@@ -80,6 +80,11 @@ fn colour_keys_are_spelled_colour_and_accept_color() {
         assert_eq!(config.train.sample_colour_weight, 0.25, "{key}");
         assert!(config.to_toml().contains("sample_colour_weight = 0.25"), "{key} is written as `colour`");
     }
+    for (key, written) in [("lr_color", "lr_colour"), ("tv_color", "tv_colour"), ("lr_colour", "lr_colour")] {
+        let text = format!("[scene]\nkind = \"synthetic\"\n[field]\nkind = \"voxel-grid\"\n{key} = 0.125\n");
+        let config = RunConfig::parse(&text, path).expect(key);
+        assert!(config.to_toml().contains(&format!("{written} = 0.125")), "{key} is written as `{written}`");
+    }
 }
 
 #[test]

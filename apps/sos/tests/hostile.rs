@@ -175,6 +175,33 @@ fn counts_beyond_any_machine_are_refused_by_key() {
             key: key.into(),
         })
         .collect();
+    let mut cases = cases;
+    // Sizes within every bound that together need more memory than any machine here has:
+    // refused by the memory estimate before the field is built.
+    let grid = toml::Value::try_from([1024, 1024, 1024]).unwrap();
+    cases.push(Case {
+        label: "a 1024³ grid".into(),
+        config: toml::to_string(&replaced(&base, "field.resolution", grid)).unwrap(),
+        key: "field.resolution".into(),
+    });
+    let many = replaced(&base, "train.rays_per_step", toml::Value::Integer(1 << 20));
+    cases.push(Case {
+        label: "a million rays of 4096 samples".into(),
+        config: toml::to_string(&replaced(&many, "train.samples_per_ray", toml::Value::Integer(4096))).unwrap(),
+        key: "train.rays_per_step".into(),
+    });
+    let nerf = init_config(&dir, "synthetic", "nerf");
+    let wide = replaced(&nerf, "field.width", toml::Value::Integer(4096));
+    cases.push(Case {
+        label: "nerf 32 x 4096 at 4096 rays".into(),
+        config: toml::to_string(&replaced(
+            &replaced(&wide, "field.depth", 32.into()),
+            "train.rays_per_step",
+            4096.into(),
+        ))
+        .unwrap(),
+        key: "train.rays_per_step".into(),
+    });
     let failures = run_cases(&dir, &cases);
     assert!(failures.is_empty(), "counts not refused by key:\n{}", failures.join("\n"));
     std::fs::remove_dir_all(dir).ok();
@@ -285,5 +312,41 @@ fn a_checkpoint_holding_non_finite_parameters_is_refused_naming_the_section() {
     }
     let out = sos(&["train", "--resume", "run.toml"], &dir);
     assert_eq!(out.status.code(), Some(2), "{}", text(&out.stderr));
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
+fn compare_refuses_what_is_not_a_mask_naming_the_file() {
+    let dir = temp_dir("sos-hostile", "compare");
+    let good = sos_core::image::GrayImage { width: 4, height: 3, data: vec![1.0; 12] };
+    good.save_png(&dir.join("good.png")).unwrap();
+    std::fs::write(dir.join("empty.png"), b"").unwrap();
+    std::fs::write(dir.join("text.png"), b"not an image at all").unwrap();
+    let png = std::fs::read(dir.join("good.png")).unwrap();
+    std::fs::write(dir.join("cut.png"), &png[..png.len() / 2]).unwrap();
+    std::fs::create_dir_all(dir.join("folder.png")).unwrap();
+    std::fs::write(dir.join("blocker"), "x").unwrap();
+    let cases: [(&[&str], &str); 9] = [
+        (&["missing.png", "good.png"], "missing.png"),
+        (&["good.png", "missing.png"], "missing.png"),
+        (&["empty.png", "good.png"], "empty.png"),
+        (&["good.png", "empty.png"], "empty.png"),
+        (&["text.png", "good.png"], "text.png"),
+        (&["good.png", "cut.png"], "cut.png"),
+        (&["folder.png", "good.png"], "folder.png"),
+        (&["good.png", "folder.png"], "folder.png"),
+        (&["good.png", "good.png", "--out", "blocker/report.json"], "blocker"),
+    ];
+    let mut failures = Vec::new();
+    for (args, named) in cases {
+        let mut all = vec!["compare"];
+        all.extend_from_slice(args);
+        let out = sos(&all, &dir);
+        let stderr = text(&out.stderr);
+        if out.status.code() != Some(2) || !stderr.contains(named) || stderr.contains("panicked") {
+            failures.push(format!("sos {} (exit {:?}): {}", all.join(" "), out.status.code(), stderr.trim()));
+        }
+    }
+    assert!(failures.is_empty(), "compare accepted bad input:\n{}", failures.join("\n"));
     std::fs::remove_dir_all(dir).ok();
 }

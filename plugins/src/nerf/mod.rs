@@ -146,6 +146,20 @@ impl NerfConfig {
     }
 }
 
+/// Memory of `networks` networks of `shape`: weights with their gradients and Adam moments,
+/// and per recorded sample every layer's activations before and after the nonlinearity.
+pub(crate) fn network_memory(shape: &NerfShape, networks: u64) -> sos_core::plugin::FieldMemory {
+    let (depth, width, view) = (shape.depth as u64, shape.width as u64, shape.view_width as u64);
+    let input = (shape.in_dim * (1 + 2 * shape.pos_frequencies)) as u64;
+    let weights = input * width + depth * width * width + width * view + 4 * (width + view);
+    let activations = depth * width + view + input;
+    sos_core::plugin::FieldMemory {
+        parameter_bytes: networks * weights * 4 * 4,
+        parameter_key: "field.width".into(),
+        bytes_per_sample: networks * activations * 4 * 2,
+    }
+}
+
 /// The bounds of `nerf`'s checks.
 const LIMITS: Limits = Limits { kind: "nerf", max_coarse_samples: 1024 };
 
@@ -157,6 +171,10 @@ sos_core::plugin_kind! {
         fn build(&self, extent: &SceneExtent, seed: u64) -> Result<Box<dyn RadianceField>, BuildError> {
             self.validate()?;
             Ok(Box::new(NerfField::new(self.clone(), Contraction::new(extent), seed)))
+        }
+
+        fn memory_estimate(&self) -> Option<sos_core::plugin::FieldMemory> {
+            Some(network_memory(&self.shape(), if self.hierarchical { 2 } else { 1 }))
         }
     }
 }

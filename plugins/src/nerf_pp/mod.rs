@@ -107,6 +107,12 @@ sos_core::plugin_kind! {
             };
             Ok(Box::new(NerfPpField::new(self.clone(), space, seed)))
         }
+
+        fn memory_estimate(&self) -> Option<sos_core::plugin::FieldMemory> {
+            // Foreground and background, each with a coarse and a fine network.
+            let nerf = crate::nerf::NerfConfig::from(self);
+            Some(crate::nerf::network_memory(&nerf.shape(), 4))
+        }
     }
 }
 

@@ -242,7 +242,7 @@ impl RadianceField for VoxelGridField {
 
     fn step(&mut self, lr_factor: f32) {
         let ch = self.grid.channels;
-        let mut lr = vec![self.config.lr_color * lr_factor; ch];
+        let mut lr = vec![self.config.lr_colour * lr_factor; ch];
         lr[0] = self.config.lr_density * lr_factor;
         self.adam.step(&mut self.grid.data, &mut self.grads, &mut self.touched_flag, ch, &lr);
         self.touched.clear();
@@ -361,7 +361,7 @@ impl RadianceField for VoxelGridField {
 
     fn regularized(&mut self) -> Option<&mut dyn Regularized> {
         // Without weights there is nothing to add; the trainer then skips the pass.
-        if self.config.tv_density == 0.0 && self.config.tv_color == 0.0 {
+        if self.config.tv_density == 0.0 && self.config.tv_colour == 0.0 {
             None
         } else {
             Some(self)
@@ -392,7 +392,7 @@ impl Regularized for VoxelGridField {
     fn regularize(&mut self) -> f64 {
         // Total variation between each touched vertex and its +x, +y, +z neighbours:
         // λ Σ (v_n − v)², gradient ±2λ(v_n − v). Neighbours become touched too.
-        let (tv_d, tv_c) = (self.config.tv_density, self.config.tv_color);
+        let (tv_d, tv_c) = (self.config.tv_density, self.config.tv_colour);
         if tv_d == 0.0 && tv_c == 0.0 {
             return 0.0;
         }

@@ -36,11 +36,13 @@ pub struct VoxelGridConfig {
     /// Adam learning rate of the density.
     pub lr_density: f32,
     /// Adam learning rate of the colour coefficients.
-    pub lr_color: f32,
+    #[serde(alias = "lr_color")]
+    pub lr_colour: f32,
     /// Total-variation weight on the density (per touched vertex and axis).
     pub tv_density: f32,
     /// Total-variation weight on the colour coefficients.
-    pub tv_color: f32,
+    #[serde(alias = "tv_color")]
+    pub tv_colour: f32,
     /// Positional-encoding octaves of the contracted position in the segmentation input.
     pub seg_frequencies: usize,
 }
@@ -54,11 +56,11 @@ impl Default for VoxelGridConfig {
             sh_degree: 1,
             alpha_init: 1e-3,
             lr_density: 0.1,
-            lr_color: 0.05,
+            lr_colour: 0.05,
             // Off by default: at initialisation the softplus slope makes photometric density
             // gradients tiny, and any total variation would dominate Adam's normalised steps.
             tv_density: 0.0,
-            tv_color: 0.0,
+            tv_colour: 0.0,
             seg_frequencies: 6,
         }
     }
@@ -87,12 +89,12 @@ impl VoxelGridConfig {
         if self.upsample_at.iter().any(|f| !(0.0..1.0).contains(f)) {
             return Err(Self::invalid("upsample_at", "fractions must be in [0, 1)"));
         }
-        for (key, v) in [("lr_density", self.lr_density), ("lr_color", self.lr_color)] {
+        for (key, v) in [("lr_density", self.lr_density), ("lr_colour", self.lr_colour)] {
             if !(v > 0.0 && v.is_finite()) {
                 return Err(Self::invalid(key, "must be a positive number"));
             }
         }
-        for (key, v) in [("tv_density", self.tv_density), ("tv_color", self.tv_color)] {
+        for (key, v) in [("tv_density", self.tv_density), ("tv_colour", self.tv_colour)] {
             if !(v >= 0.0 && v.is_finite()) {
                 return Err(Self::invalid(key, "must be zero or positive"));
             }
@@ -113,6 +115,18 @@ sos_core::plugin_kind! {
             self.validate()?;
             let _ = seed; // The grid starts empty and uniform; nothing random to draw.
             Ok(Box::new(VoxelGridField::new(self.clone(), Contraction::new(extent), extent)))
+        }
+
+        fn memory_estimate(&self) -> Option<sos_core::plugin::FieldMemory> {
+            // Density and the colour's SH coefficients per vertex, each with its gradient and
+            // two Adam moments; per sample the 8 corners' indices and weights and the features.
+            let channels = 1 + 3 * (self.sh_degree as u64 + 1).pow(2);
+            let vertices = self.resolution.iter().map(|&r| r as u64).product::<u64>();
+            Some(sos_core::plugin::FieldMemory {
+                parameter_bytes: vertices.saturating_mul(channels * 4 * 4),
+                parameter_key: "field.resolution".into(),
+                bytes_per_sample: 8 * 8 + channels * 4,
+            })
         }
     }
 }

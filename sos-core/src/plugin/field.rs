@@ -389,6 +389,26 @@ pub mod plain {
 pub trait RadianceFieldConfig: std::fmt::Debug + Send + Sync {
     /// Validates the settings and builds an initialised field for a scene of this extent.
     fn build(&self, extent: &SceneExtent, seed: u64) -> Result<Box<dyn RadianceField>, BuildError>;
+
+    /// An upper estimate of the memory the field will take, computed from the settings alone
+    /// (nothing allocated), so that a config no machine could serve is refused before the field
+    /// is built. `None` (the default): unknown, and only the core's own buffers are checked.
+    fn memory_estimate(&self) -> Option<FieldMemory> {
+        None
+    }
+}
+
+/// What a field's memory grows with (see [`RadianceFieldConfig::memory_estimate`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FieldMemory {
+    /// Bytes of the parameters and everything kept per parameter (gradients, optimiser moments)
+    /// at the field's largest size.
+    pub parameter_bytes: u64,
+    /// The config key (dotted, e.g. `field.resolution`) that sets `parameter_bytes`, for the
+    /// message when it is too large.
+    pub parameter_key: String,
+    /// Bytes the field's tape keeps per recorded sample during a training step.
+    pub bytes_per_sample: u64,
 }
 
 inventory::collect!(Registration<dyn RadianceFieldConfig>);

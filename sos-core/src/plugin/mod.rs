@@ -11,8 +11,8 @@ pub mod state;
 pub use dataset::DatasetConfig;
 pub use extractor::{BuildContext, FeatureExtractor, FeatureExtractorConfig, FeatureMap};
 pub use field::{
-    CoarseToFine, FieldTape, FrozenPass, Hierarchical, HierarchicalSampling, RadianceField, RadianceFieldConfig,
-    Regularized,
+    CoarseToFine, FieldMemory, FieldTape, FrozenPass, Hierarchical, HierarchicalSampling, RadianceField,
+    RadianceFieldConfig, Regularized,
 };
 pub use loss::{ContrastiveLoss, ContrastiveLossConfig, LossValue, PatchBatch};
 pub use miner::{PairMiner, PairMinerConfig};

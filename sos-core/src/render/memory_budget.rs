@@ -76,7 +76,7 @@ pub fn machine_default_gib() -> (f64, String) {
 }
 
 /// Total memory of the machine (Linux: `MemTotal` of `/proc/meminfo`).
-fn machine_memory_bytes() -> Option<u64> {
+pub fn machine_memory_bytes() -> Option<u64> {
     let text = std::fs::read_to_string("/proc/meminfo").ok()?;
     let line = text.lines().find(|l| l.starts_with("MemTotal:"))?;
     let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;

@@ -3,6 +3,7 @@
 pub mod checkpoint;
 pub mod evaluate;
 pub mod face_pileup;
+pub mod memory_check;
 pub mod observer;
 pub mod photometric;
 pub mod run_dir;

@@ -61,17 +61,23 @@ impl Session {
     pub fn open(config_path: &Path) -> Result<Session, RunError> {
         let config = RunConfig::load(config_path)?;
         let config_dir = config_path.parent().map(Path::to_path_buf).unwrap_or_default();
-        Session::from_config(config, &config_dir)
+        Session::build(config, &config_dir, config_path)
     }
 
     /// Builds a session from an already parsed config.
-    pub fn from_config(mut config: RunConfig, config_dir: &Path) -> Result<Session, RunError> {
+    pub fn from_config(config: RunConfig, config_dir: &Path) -> Result<Session, RunError> {
+        Session::build(config, config_dir, config_dir)
+    }
+
+    /// [`Session::from_config`]; `source` (the config file, or its folder) is named in errors.
+    fn build(mut config: RunConfig, config_dir: &Path, source: &Path) -> Result<Session, RunError> {
         let scene = config.scene.open(config_dir)?;
         scene.validate().map_err(|message| crate::plugin::dataset::DatasetError::Invalid {
             path: config_dir.to_path_buf(),
             message,
         })?;
         let derived = derive_settings(&mut config, config_dir, &scene);
+        crate::train::memory_check::check(&config, source)?;
         let field = config.field.build(&scene.extent, config.seed)?;
         let field_kind = kind_of(&config.field);
         let contraction = Contraction::new(&scene.extent);
