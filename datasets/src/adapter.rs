@@ -30,6 +30,7 @@ macro_rules! register_dataset {
                     &self,
                     config_dir: &std::path::Path,
                 ) -> Result<sos_core::scene::Scene, sos_core::plugin::dataset::DatasetError> {
+                    $crate::adapter::require_path(&self.path)?;
                     $load(self, &config_dir.join(&self.path))
                 }
 
@@ -50,6 +51,18 @@ pub(crate) use register_dataset;
 /// The `derived` of an adapter that derives nothing (every setting is in its config).
 pub fn nothing_derived<C>(_config: &C, _root: &Path, _scene: &Scene) -> Vec<sos_core::derived::DerivedSetting> {
     Vec::new()
+}
+
+/// Refuses a config without `path` (an empty one would silently name the config's own
+/// folder).
+pub fn require_path(path: &Path) -> Result<(), DatasetError> {
+    if path.as_os_str().is_empty() {
+        return Err(DatasetError::Missing {
+            path: "[scene] path".into(),
+            hint: "the key is required: set it to the capture's folder (relative to the config file)".into(),
+        });
+    }
+    Ok(())
 }
 
 /// Refuses a capture folder `root` that does not exist, saying what was `expected` there

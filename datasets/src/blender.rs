@@ -329,8 +329,21 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
             let outline = silhouette(&full, &alpha, focus);
             drop(alpha);
             let d = cfg.downscale as usize;
+            // Fewest pixels a side a downscaled view may keep.
+            const MIN_SIDE: usize = 8;
             if d > 1 {
-                image = image.resized((image.width / d).max(1), (image.height / d).max(1));
+                let (w, h) = (image.width / d, image.height / d);
+                if w.min(h) < MIN_SIDE {
+                    return Err(invalid(
+                        &f.image,
+                        format!(
+                            "config key `downscale` = {d} leaves {w}x{h} pixels of this {}x{} image; views need at \
+                             least {MIN_SIDE} a side: lower `downscale`",
+                            image.width, image.height
+                        ),
+                    ));
+                }
+                image = image.resized(w, h);
             }
             let (w, h) = (image.width, image.height);
             let camera = frame_camera(w, h, *angle, f.cam_to_world);

@@ -350,3 +350,45 @@ fn compare_refuses_what_is_not_a_mask_naming_the_file() {
     assert!(failures.is_empty(), "compare accepted bad input:\n{}", failures.join("\n"));
     std::fs::remove_dir_all(dir).ok();
 }
+
+#[test]
+fn a_missing_scene_path_is_named_as_the_missing_key() {
+    let dir = temp_dir("sos-hostile", "no_path");
+    let mut failures = Vec::new();
+    for scene in registrations::<dyn DatasetConfig>() {
+        let mut base = init_config(&dir, scene.kind, "voxel-grid");
+        let Some(table) = base.get_mut("scene").and_then(toml::Value::as_table_mut) else { continue };
+        if table.remove("path").is_none() {
+            continue; // a kind without a capture folder (the generator)
+        }
+        let file = format!("{}.toml", scene.kind);
+        std::fs::write(dir.join(&file), toml::to_string(&base).unwrap()).unwrap();
+        let out = sos(&["train", &file], &dir);
+        let stderr = text(&out.stderr);
+        if out.status.code() != Some(2) || !stderr.contains("[scene] path") || !stderr.contains("required") {
+            failures.push(format!("{} (exit {:?}): {}", scene.kind, out.status.code(), stderr.trim()));
+        }
+    }
+    assert!(failures.is_empty(), "a missing `path` not named:\n{}", failures.join("\n"));
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
+fn a_downscale_that_leaves_no_image_is_blamed() {
+    let dir = temp_dir("sos-hostile", "downscale");
+    let scene = sos_datasets::synthetic::generate(&sos_datasets::synthetic::SyntheticConfig {
+        width: 64,
+        height: 48,
+        views: 8,
+        ..Default::default()
+    });
+    let layout = dir.join("blender");
+    sos_datasets::layouts::Format::Blender.write(&scene, &layout).unwrap();
+    let config = format!("[scene]\nkind = \"blender\"\npath = \"{}\"\ndownscale = 16\n", layout.display());
+    std::fs::write(dir.join("run.toml"), config).unwrap();
+    let out = sos(&["train", "run.toml"], &dir);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("`downscale`") && stderr.contains("4x3"), "{stderr}");
+    std::fs::remove_dir_all(dir).ok();
+}
