@@ -2,6 +2,7 @@
 
 pub mod compare;
 pub mod eval;
+pub mod export;
 pub mod init;
 pub mod list;
 pub mod render;
