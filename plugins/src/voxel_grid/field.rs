@@ -303,6 +303,14 @@ impl RadianceField for VoxelGridField {
         state::write(&header, &[&self.grid.data])
     }
 
+    fn save_optimizer_state(&self) -> Vec<u8> {
+        self.adam.to_bytes()
+    }
+
+    fn load_optimizer_state(&mut self, bytes: &[u8]) -> Result<(), sos_core::error::StateError> {
+        self.adam.load_bytes("voxel-grid", bytes)
+    }
+
     fn load_state(&mut self, bytes: &[u8]) -> Result<(), sos_core::error::StateError> {
         use sos_core::error::StateError;
         let kind = "voxel-grid";

@@ -118,6 +118,19 @@ pub trait RadianceField: Send + Sync {
     /// [`RadianceField::parameters`].
     fn gradients(&self) -> Vec<f32>;
 
+    /// The optimiser's state (moments, step count) for a checkpoint that a run resumes from
+    /// exactly as if it had not stopped. Empty (the default) when the field cannot save it: a
+    /// resumed run then restarts the optimiser, which trains on but not bit for bit.
+    fn save_optimizer_state(&self) -> Vec<u8> {
+        Vec::new()
+    }
+
+    /// Restores what [`RadianceField::save_optimizer_state`] wrote (after
+    /// [`RadianceField::load_state`]); called only with non-empty bytes.
+    fn load_optimizer_state(&mut self, _bytes: &[u8]) -> Result<(), StateError> {
+        Ok(())
+    }
+
     /// Hierarchical sampling, when the field wants it (default: single-pass marching).
     fn hierarchical(&self) -> Option<&dyn HierarchicalSampling> {
         None
@@ -199,6 +212,14 @@ macro_rules! pass_on_field_methods {
 
         fn gradients(&self) -> Vec<f32> {
             self.$inner.gradients()
+        }
+
+        fn save_optimizer_state(&self) -> Vec<u8> {
+            self.$inner.save_optimizer_state()
+        }
+
+        fn load_optimizer_state(&mut self, bytes: &[u8]) -> Result<(), $crate::error::StateError> {
+            self.$inner.load_optimizer_state(bytes)
         }
     };
 }

@@ -24,6 +24,32 @@ impl OccupancyGrid {
         OccupancyGrid { res, density: vec![f32::MAX; n], occupied: vec![true; n], threshold }
     }
 
+    /// The grid as bytes (see [`crate::plugin::state`]), for a checkpoint a run resumes from
+    /// with the same skipping as if it had not stopped.
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let header = serde_json::json!({ "res": self.res, "threshold": self.threshold });
+        let occupied: Vec<f32> = self.occupied.iter().map(|&o| f32::from(u8::from(o))).collect();
+        crate::plugin::state::write(&header, &[&self.density, &occupied])
+    }
+
+    /// Restores [`OccupancyGrid::to_bytes`] into a grid of the same resolution.
+    pub fn load_bytes(&mut self, bytes: &[u8]) -> Result<(), crate::error::StateError> {
+        use crate::error::StateError;
+        const KIND: &str = "occupancy grid";
+        let (header, body) = crate::plugin::state::read(KIND, bytes)?;
+        if header["res"].as_u64() != Some(self.res as u64) {
+            return Err(StateError::Mismatch {
+                kind: KIND.into(),
+                reason: format!("saved at {} cells a side, the config asks for {}", header["res"], self.res),
+            });
+        }
+        let n = self.density.len();
+        let values = crate::plugin::state::values(KIND, body, 2 * n)?;
+        self.density.copy_from_slice(&values[..n]);
+        self.occupied.iter_mut().zip(&values[n..]).for_each(|(o, &v)| *o = v != 0.0);
+        Ok(())
+    }
+
     /// Cells per side.
     pub fn resolution(&self) -> usize {
         self.res
@@ -115,6 +141,17 @@ impl OccupancyGrid {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn bytes_round_trip_and_refuse_another_resolution() {
+        let mut g = OccupancyGrid::new(4, 1.0);
+        g.density.iter_mut().enumerate().for_each(|(i, d)| *d = i as f32 * 0.5);
+        g.occupied.iter_mut().enumerate().for_each(|(i, o)| *o = i % 3 == 0);
+        let mut back = OccupancyGrid::new(4, 1.0);
+        back.load_bytes(&g.to_bytes()).unwrap();
+        assert_eq!((back.density, back.occupied), (g.density.clone(), g.occupied.clone()));
+        assert!(OccupancyGrid::new(5, 1.0).load_bytes(&g.to_bytes()).is_err());
+    }
 
     #[test]
     fn dilation_grows_by_one_cell() {

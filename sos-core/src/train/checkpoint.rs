@@ -37,7 +37,17 @@ pub struct CheckpointMeta {
     /// written before it was recorded).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub extent: Option<String>,
+    /// Where stage 1's random stream stood (ChaCha8 word position, decimal), so a resumed run
+    /// draws the rays an uninterrupted one would.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rng_position: Option<String>,
 }
+
+/// Checkpoint section holding the field's optimiser state
+/// ([`crate::plugin::RadianceField::save_optimizer_state`]).
+pub const OPTIMIZER_SECTION: &str = "optimizer";
+/// Checkpoint section holding the occupancy grid ([`crate::render::occupancy::OccupancyGrid::to_bytes`]).
+pub const OCCUPANCY_SECTION: &str = "occupancy";
 
 /// Writes `meta` and the named binary sections atomically.
 pub fn save(path: &Path, meta: &CheckpointMeta, sections: &[(&str, &[u8])]) -> Result<(), RunError> {
@@ -141,7 +151,13 @@ mod tests {
     fn round_trips_and_rejects_truncation() {
         let dir = std::env::temp_dir().join(format!("sos-ckpt-{}", std::process::id()));
         let path = dir.join("c.bin");
-        let meta = CheckpointMeta { step: 7, field_kind: "voxel-grid".into(), config: "x = 1".into(), extent: None };
+        let meta = CheckpointMeta {
+            step: 7,
+            field_kind: "voxel-grid".into(),
+            config: "x = 1".into(),
+            extent: None,
+            rng_position: None,
+        };
         save(&path, &meta, &[("field", &[1, 2, 3]), ("head", &[])]).unwrap();
         let c = load(&path).unwrap();
         assert_eq!(c.meta, meta);
@@ -161,7 +177,13 @@ mod tests {
     fn every_flipped_byte_is_caught() {
         let dir = std::env::temp_dir().join(format!("sos-ckpt-flip-{}", std::process::id()));
         let path = dir.join("c.bin");
-        let meta = CheckpointMeta { step: 3, field_kind: "k".into(), config: "y = 2".into(), extent: None };
+        let meta = CheckpointMeta {
+            step: 3,
+            field_kind: "k".into(),
+            config: "y = 2".into(),
+            extent: None,
+            rng_position: None,
+        };
         save(&path, &meta, &[("field", &[9, 8, 7, 6, 5])]).unwrap();
         let good = std::fs::read(&path).unwrap();
         for i in 0..good.len() {
@@ -177,7 +199,8 @@ mod tests {
     fn checkpoints_without_a_checksum_still_load() {
         let dir = std::env::temp_dir().join(format!("sos-ckpt-v1-{}", std::process::id()));
         let path = dir.join("c.bin");
-        let meta = CheckpointMeta { step: 1, field_kind: "k".into(), config: String::new(), extent: None };
+        let meta =
+            CheckpointMeta { step: 1, field_kind: "k".into(), config: String::new(), extent: None, rng_position: None };
         save(&path, &meta, &[("field", &[1])]).unwrap();
         let mut bytes = std::fs::read(&path).unwrap();
         bytes.truncate(bytes.len() - CHECKSUM_BYTES);

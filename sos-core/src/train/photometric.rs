@@ -115,7 +115,16 @@ pub fn train_photometric_observed(
 ) -> Result<StepStats, RunError> {
     let total = session.config.train.steps;
     let n_rays = session.config.train.rays_per_step;
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed.wrapping_add(session.step as u64));
+    // One random stream for the whole stage; a resumed run continues it where the checkpoint
+    // left it (a checkpoint without the position: a stream of its own from that step).
+    let mut rng = match session.rng_position {
+        Some(position) => {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed);
+            rng.set_word_pos(position);
+            rng
+        }
+        None => rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed.wrapping_add(session.step as u64)),
+    };
     observer.stage_begins(Stage::Photometric, session.step, total);
     let mut last = StepStats::default();
     let mut bad_steps = 0;
@@ -265,10 +274,12 @@ pub fn train_photometric_observed(
         observer.stage1_step(session, &last)?;
         let every = session.config.train.checkpoint_every;
         if every > 0 && session.step.is_multiple_of(every) && session.step < total {
+            session.rng_position = Some(rng.get_word_pos());
             session.save_checkpoint()?;
         }
     }
     observer.stage_ends(Stage::Photometric);
+    session.rng_position = Some(rng.get_word_pos());
     session.bake_occupancy();
     session.save_checkpoint()?;
     Ok(last)

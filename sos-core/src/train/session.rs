@@ -46,6 +46,9 @@ pub struct Session {
     pub step: usize,
     /// The settings this run derived from its scene (already written into `config`).
     pub derived: Vec<DerivedSetting>,
+    /// Where stage 1's random stream stood at `step` (a ChaCha8 word position), restored from
+    /// a checkpoint so that a resumed run continues the stream; `None` for a fresh run.
+    pub rng_position: Option<u128>,
 }
 
 /// The `kind` tag of a typetag'd config object.
@@ -99,6 +102,7 @@ impl Session {
             occupancy,
             step: 0,
             derived,
+            rng_position: None,
         })
     }
 
@@ -119,20 +123,29 @@ impl Session {
         self.run_dir.join("checkpoint.bin")
     }
 
-    /// Writes the checkpoint atomically.
+    /// Writes the checkpoint atomically: the field, its optimiser state and the occupancy grid,
+    /// everything a run needs to resume as if it had not stopped.
     pub fn save_checkpoint(&self) -> Result<(), RunError> {
-        let meta = self.checkpoint_meta();
-        let state = self.field.save_state();
-        checkpoint::save(&self.checkpoint_path(), &meta, &[("field", &state)])
+        self.save_checkpoint_with(&[])
     }
 
-    /// Writes the checkpoint atomically with `extra` named sections after the field (e.g. the
-    /// stage-2 `head`).
+    /// Writes the checkpoint atomically with `extra` named sections after the run's own (e.g.
+    /// the stage-2 `head`).
     pub fn save_checkpoint_with(&self, extra: &[(&str, &[u8])]) -> Result<(), RunError> {
         let meta = self.checkpoint_meta();
         let state = self.field.save_state();
-        let mut sections: Vec<(&str, &[u8])> = vec![("field", &state)];
-        sections.extend(extra.iter().copied().filter(|(name, _)| *name != "field"));
+        // The optimiser's moments (twice the field's size) matter only while the field still
+        // trains: during stage 1, or in stage 2 when it trains jointly with the head.
+        let field_trains = self.step < self.config.train.steps || self.config.segment.photometric_weight > 0.0;
+        let optimizer = if field_trains { self.field.save_optimizer_state() } else { Vec::new() };
+        let occupancy = self.occupancy.as_ref().map(OccupancyGrid::to_bytes).unwrap_or_default();
+        let own = [
+            ("field", state.as_slice()),
+            (checkpoint::OPTIMIZER_SECTION, optimizer.as_slice()),
+            (checkpoint::OCCUPANCY_SECTION, occupancy.as_slice()),
+        ];
+        let mut sections: Vec<(&str, &[u8])> = own.iter().copied().filter(|(_, bytes)| !bytes.is_empty()).collect();
+        sections.extend(extra.iter().copied().filter(|(name, _)| !own.iter().any(|(n, _)| n == name)));
         checkpoint::save(&self.checkpoint_path(), &meta, &sections)
     }
 
@@ -142,6 +155,7 @@ impl Session {
             field_kind: self.field_kind.clone(),
             config: self.config.to_toml(),
             extent: Some(self.scene.extent.to_string()),
+            rng_position: self.rng_position.map(|p| p.to_string()),
         }
     }
 
@@ -184,8 +198,23 @@ impl Session {
                  start over without the checkpoint, with a lower learning rate"
             )));
         }
+        if let Some(bytes) = ckpt.section(checkpoint::OPTIMIZER_SECTION) {
+            self.field.load_optimizer_state(bytes).map_err(|e| fail(format!("its optimizer section: {e}")))?;
+        }
         self.step = ckpt.meta.step;
-        self.bake_occupancy();
+        self.rng_position = match &ckpt.meta.rng_position {
+            Some(p) => Some(p.parse().map_err(|_| fail(format!("its random-stream position `{p}` is not a number")))?),
+            None => None,
+        };
+        // The grid as the run left it; rebuilt from the field when the checkpoint has none (or
+        // one of another resolution).
+        let restored = match (self.occupancy.as_mut(), ckpt.section(checkpoint::OCCUPANCY_SECTION)) {
+            (Some(occ), Some(bytes)) => occ.load_bytes(bytes).is_ok(),
+            _ => false,
+        };
+        if !restored {
+            self.bake_occupancy();
+        }
         Ok((ckpt, path))
     }
 
