@@ -10,7 +10,7 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{temp_dir, text};
+use common::{sos, temp_dir, text};
 use sos_core::train::checkpoint;
 
 const SOS: &str = env!("CARGO_BIN_EXE_sos");
@@ -83,7 +83,7 @@ fn runs_killed_in_both_stages_resume_to_the_uninterrupted_result() {
     std::fs::write(dir.join("killed.toml"), config("killed")).unwrap();
 
     let started = Instant::now();
-    let out = Command::new(SOS).args(["train", "--quiet", "whole.toml"]).current_dir(&dir).output().unwrap();
+    let out = sos(&["train", "--quiet", "whole.toml"], &dir);
     assert!(out.status.success(), "{}", text(&out.stderr));
     let whole_time = started.elapsed();
     let expected = results(&dir.join("runs/whole"));
