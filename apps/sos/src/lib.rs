@@ -1,5 +1,5 @@
 //! The nerf-sos command line as a library: [`run`] parses the arguments and runs any command
-//! (`train`, `segment`, `render`, `eval`, `compare`, `bench`, `list`, `init`) with every
+//! (`train`, `segment`, `render`, `export`, `eval`, `compare`, `bench`, `list`, `init`) with every
 //! plugin linked into the calling program. Every failure prints the chain of causes (file,
 //! key, what to do) and exits with code 2.
 
