@@ -304,6 +304,12 @@ fn derived_llff(cfg: &LlffConfig, root: &Path, scene: &Scene) -> Vec<DerivedSett
 /// Loads an LLFF scene from folder `root` (the config's `path` already resolved).
 pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
     require_folder(root, "an LLFF scene folder with poses_bounds.npy and images_N/")?;
+    if !(1..=10_000).contains(&cfg.render_path_views) {
+        return Err(invalid(
+            root,
+            format!("config key `render_path_views` must be in 1..=10000, got {}", cfg.render_path_views),
+        ));
+    }
     let npy_path = root.join("poses_bounds.npy");
     let geo = read_llff_geometry(cfg, &npy_path)?;
     let source = image_source(cfg, root, geo.hwf)?;

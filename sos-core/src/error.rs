@@ -129,6 +129,14 @@ pub enum RunError {
     /// The scene could not be loaded.
     #[error("cannot load the scene")]
     Dataset(#[from] crate::plugin::dataset::DatasetError),
+    /// The scene of a config file could not be loaded.
+    #[error("{config}: cannot load the scene")]
+    Scene {
+        /// The config file (or its folder) whose `[scene]` failed.
+        config: PathBuf,
+        /// Why.
+        source: crate::plugin::dataset::DatasetError,
+    },
     /// A plugin could not be built.
     #[error(transparent)]
     Build(#[from] BuildError),

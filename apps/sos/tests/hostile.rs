@@ -94,7 +94,12 @@ fn run_cases(dir: &Path, cases: &[Case]) -> Vec<String> {
         std::fs::write(dir.join(&file), &case.config).unwrap();
         let out = sos(&["train", &file], dir);
         let stderr = text(&out.stderr);
-        let key_named = stderr.contains(&case.key) || stderr.contains(case.key.split('[').next().unwrap_or(""));
+        // Named by its dotted path, or as a key of its section's table (`[scene] … key `views``).
+        let path = case.key.split('[').next().unwrap_or("");
+        let (section, leaf) = path.rsplit_once('.').unwrap_or(("", path));
+        let key_named = stderr.contains(&case.key)
+            || stderr.contains(path)
+            || (stderr.contains(&format!("[{section}]")) && stderr.contains(&format!("`{leaf}`")));
         if out.status.code() != Some(2) || !stderr.contains(&file) || !key_named {
             failures.push(format!("{} (exit {:?}): {}", case.label, out.status.code(), stderr.trim()));
         }
@@ -163,6 +168,9 @@ fn counts_beyond_any_machine_are_refused_by_key() {
         ("render.chunk", 1_000_000_000_000),
         ("train.occupancy_resolution", 100_000),
         ("head.outputs", 1_000_000_000),
+        ("scene.views", 1_000_000_000),
+        ("scene.render_path_views", 1_000_000_000),
+        ("scene.width", 1_000_000),
         ("train.rays_per_step", 0),
         ("render.chunk", 0),
         ("masks.restarts", 0),

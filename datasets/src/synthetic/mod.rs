@@ -182,6 +182,9 @@ impl SyntheticConfig {
         if !(2..=10_000).contains(&self.views) {
             return Err(format!("key `views`: must be within 2..=10000, got {}", self.views));
         }
+        if self.render_path_views > 10_000 {
+            return Err(format!("key `render_path_views`: must be at most 10000, got {}", self.render_path_views));
+        }
         if self.hold_out_every == 1 {
             return Err("key `hold_out_every`: 1 would hold out every view; use 0 or ≥ 2".into());
         }

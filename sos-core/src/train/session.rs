@@ -74,11 +74,15 @@ impl Session {
 
     /// [`Session::from_config`]; `source` (the config file, or its folder) is named in errors.
     fn build(mut config: RunConfig, config_dir: &Path, source: &Path) -> Result<Session, RunError> {
-        let scene = config.scene.open(config_dir)?;
-        scene.validate().map_err(|message| crate::plugin::dataset::DatasetError::Invalid {
-            path: config_dir.to_path_buf(),
-            message,
-        })?;
+        let in_config = |e| RunError::Scene { config: source.to_path_buf(), source: e };
+        let scene = config.scene.open(config_dir).map_err(in_config)?;
+        scene
+            .validate()
+            .map_err(|message| crate::plugin::dataset::DatasetError::Invalid {
+                path: config_dir.to_path_buf(),
+                message,
+            })
+            .map_err(in_config)?;
         let derived = derive_settings(&mut config, config_dir, &scene);
         crate::train::memory_check::check(&config, source)?;
         let field = config.field.build(&scene.extent, config.seed)?;
