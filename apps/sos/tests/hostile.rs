@@ -400,3 +400,21 @@ fn a_downscale_that_leaves_no_image_is_blamed() {
     assert!(stderr.contains("`downscale`") && stderr.contains("4x3"), "{stderr}");
     std::fs::remove_dir_all(dir).ok();
 }
+
+#[test]
+fn a_run_without_held_out_views_reports_no_score() {
+    let dir = temp_dir("sos-hostile", "no_test_views");
+    let mut config: toml::Table = toml::from_str(&tiny(&dir, "none")).unwrap();
+    config["scene"].as_table_mut().unwrap().insert("hold_out_every".into(), 0.into());
+    std::fs::write(dir.join("run.toml"), toml::to_string(&config).unwrap()).unwrap();
+    for command in ["train", "eval"] {
+        let out = sos(&[command, "run.toml"], &dir);
+        let (stdout, stderr) = (text(&out.stdout), text(&out.stderr));
+        assert!(out.status.success(), "sos {command}: {stderr}");
+        assert!(stdout.contains("no held-out views"), "sos {command}: {stdout}");
+        for nonsense in ["NaN", "nan", "inf", "120.00"] {
+            assert!(!stdout.contains(nonsense), "sos {command} printed {nonsense}: {stdout}");
+        }
+    }
+    std::fs::remove_dir_all(dir).ok();
+}

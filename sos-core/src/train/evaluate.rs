@@ -88,12 +88,18 @@ pub fn evaluate_views(session: &Session, write_images: bool) -> Result<ImageEval
         views.push(ViewQuality { view: v.name.clone(), psnr: psnr_from_mse(mse), mse, ssim });
     }
     let elapsed = started.elapsed().as_secs_f64().max(1e-9);
-    let n = views.len().max(1) as f64;
-    let mean_mse = views.iter().map(|v| v.mse).sum::<f64>() / n;
+    // No held-out view measures nothing: NaN (written as null), never an empty mean's 120 dB.
+    let mean = |value: fn(&ViewQuality) -> f64| {
+        if views.is_empty() {
+            f64::NAN
+        } else {
+            views.iter().map(value).sum::<f64>() / views.len() as f64
+        }
+    };
     Ok(ImageEval {
-        psnr: psnr_from_mse(mean_mse),
-        psnr_mean_per_view: views.iter().map(|v| v.psnr).sum::<f64>() / n,
-        ssim: views.iter().map(|v| v.ssim).sum::<f64>() / n,
+        psnr: psnr_from_mse(mean(|v| v.mse)),
+        psnr_mean_per_view: mean(|v| v.psnr),
+        ssim: mean(|v| v.ssim),
         views,
         render_rays_per_second: rays as f64 / elapsed,
     })

@@ -28,8 +28,7 @@ pub fn run(config: &Path, checkpoint: Option<&Path>) -> anyhow::Result<()> {
     for v in &eval.views {
         println!("{:<24} {:>8.2} {:>8.4}", v.view, v.psnr, v.ssim);
     }
-    println!("{:<24} {:>8.2}", "PSNR of mean MSE", eval.psnr);
-    println!("{:<24} {:>8.2} {:>8.4}", "mean", eval.psnr_mean_per_view, eval.ssim);
+    super::train::print_image_eval(&eval);
     match loaded {
         Some(loaded) => {
             println!();

@@ -113,7 +113,7 @@ fn record_warnings(stats: &StepStats, eval: &ImageEval, report: &mut serde_json:
 }
 
 /// The held-out quality line (a notice instead when the scene holds out no views).
-fn print_image_eval(eval: &ImageEval) {
+pub(super) fn print_image_eval(eval: &ImageEval) {
     if eval.views.is_empty() {
         println!("no held-out views: PSNR and SSIM not measured (set the scene's hold-out, e.g. `hold_out_every`)");
         return;
