@@ -178,6 +178,16 @@ fn image_source(cfg: &LlffConfig, root: &Path, hwf: [f64; 3]) -> Result<ImageSou
                     format!("image size {w_full}x{h_full} in the poses is not positive"),
                 ));
             }
+            // Images are only ever shrunk: a width beyond the photographs' would upsample them
+            // (and a typo like 1e6 would ask for terabytes).
+            if width as f64 > w_full {
+                return Err(invalid(
+                    root,
+                    format!(
+                        "config key `width` = {width} exceeds the photographs' {w_full} pixels; lower it or unset it"
+                    ),
+                ));
+            }
             let factor = w_full / width as f64;
             let height = ((h_full / factor) as usize).max(1);
             (root.join(format!("images_{width}x{height}")), width as usize, height, factor)
@@ -190,6 +200,12 @@ fn image_source(cfg: &LlffConfig, root: &Path, hwf: [f64; 3]) -> Result<ImageSou
             let f = factor as f64;
             let dir = if factor == 1 { full.clone() } else { root.join(format!("images_{factor}")) };
             let (w, h) = (((w_full / f).round() as usize).max(1), ((h_full / f).round() as usize).max(1));
+            if w.min(h) < 8 {
+                return Err(invalid(
+                    root,
+                    format!("config key `factor` = {factor} leaves {w}x{h} pixels of the {w_full}x{h_full} photographs; views need at least 8 a side: lower it"),
+                ));
+            }
             (dir, w, h, f)
         }
     };

@@ -398,6 +398,17 @@ fn a_downscale_that_leaves_no_image_is_blamed() {
     let stderr = text(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{stderr}");
     assert!(stderr.contains("`downscale`") && stderr.contains("4x3"), "{stderr}");
+    // LLFF: a factor that leaves no image, a width that would upsample to terabytes.
+    let llff = dir.join("llff");
+    sos_datasets::layouts::Format::Llff.write(&scene, &llff).unwrap();
+    for (key, value) in [("factor", "16"), ("width", "1000000")] {
+        let config = format!("[scene]\nkind = \"llff\"\npath = \"{}\"\n{key} = {value}\n", llff.display());
+        std::fs::write(dir.join("llff.toml"), config).unwrap();
+        let out = sos(&["train", "llff.toml"], &dir);
+        let stderr = text(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{key} = {value}: {stderr}");
+        assert!(stderr.contains(&format!("`{key}`")) && stderr.contains("llff.toml"), "{key} = {value}: {stderr}");
+    }
     std::fs::remove_dir_all(dir).ok();
 }
 
