@@ -133,7 +133,7 @@ fn bench(c: &mut Criterion) {
     }
     if let (Some(native_s), Some(ort_s)) = (native_s, ort_s) {
         println!(
-            "native / ONNX Runtime = {:.2}x wall, {:.2}x CPU (target <= 1.5x); max |tokens difference| {max_diff:.2e}",
+            "native / ONNX Runtime = {:.2}x wall, {:.2}x CPU; max |tokens difference| {max_diff:.2e}",
             native_s / ort_s,
             median(&native_cpu) / median(&ort_cpu)
         );
