@@ -8,7 +8,7 @@ use clap::{Parser, Subcommand};
 
 use crate::bench::cli::{BenchArgs, ExecArgs};
 use crate::commands;
-use crate::commands::export::{self, ExportOptions, MeshBounds, Part};
+use crate::commands::export::{self, ExportOptions, Part};
 
 /// Unsupervised object segmentation in any view of a 3D scene (NeRF-SOS) on the CPU.
 #[derive(Parser)]
@@ -62,32 +62,8 @@ enum Command {
     Export {
         /// Run configuration (TOML).
         config: PathBuf,
-        /// Checkpoint to export (default: the run's own); it must hold a segmentation head.
-        #[arg(long)]
-        checkpoint: Option<PathBuf>,
-        /// What to write, comma-separated (default: all).
-        #[arg(long, value_enum, value_delimiter = ',', value_name = "WHAT")]
-        what: Vec<Part>,
-        /// JSON file of cameras (`width`, `height`, `focal`, `poses`: camera-to-world 4x4
-        /// matrices) whose masks to render instead of the held-out views.
-        #[arg(long, value_name = "FILE")]
-        poses: Option<PathBuf>,
-        /// Output folder (default: `<run>/export`).
-        #[arg(long, value_name = "DIR")]
-        out: Option<PathBuf>,
-        /// Most points in the point cloud (thinned evenly over the views' pixels).
-        #[arg(long, default_value_t = export::DEFAULT_MAX_POINTS)]
-        max_points: usize,
-        /// Density grid nodes along the longest side of the mesh's box (8 to 1024).
-        #[arg(long, default_value_t = export::DEFAULT_MESH_RESOLUTION)]
-        mesh_resolution: usize,
-        /// The box the mesh's grid covers: the scene's extent, or the box around the object's points.
-        #[arg(long, value_enum, default_value = "extent")]
-        mesh_bounds: MeshBounds,
-        /// Density of the mesh's surface, per unit of length (default: ln 2 / cell, one cell of
-        /// it half opaque).
-        #[arg(long, value_name = "SIGMA")]
-        mesh_iso: Option<f32>,
+        #[command(flatten)]
+        options: ExportOptions,
     },
     /// Compute PSNR (and segmentation metrics when available) on held-out views; writes metrics.json.
     Eval {
@@ -148,30 +124,7 @@ pub fn run() -> ExitCode {
                 }
                 None => Ok(()),
             }),
-        Command::Export {
-            config,
-            checkpoint,
-            what,
-            poses,
-            out,
-            max_points,
-            mesh_resolution,
-            mesh_bounds,
-            mesh_iso,
-        } => {
-            let options = ExportOptions {
-                checkpoint,
-                what,
-                poses,
-                out,
-                max_points,
-                mesh_resolution,
-                mesh_bounds,
-                mesh_iso,
-                progress,
-            };
-            export::run(&config, &options)
-        }
+        Command::Export { config, options } => export::run(&config, &ExportOptions { progress, ..options }),
         Command::Eval { config, checkpoint } => commands::eval::run(&config, checkpoint.as_deref()),
         Command::Compare { prediction, reference, out } => {
             commands::compare::run(&prediction, &reference, out.as_deref())

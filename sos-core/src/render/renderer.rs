@@ -263,10 +263,10 @@ fn render_impl(
     let n_candidates = candidates.len();
     let seg_limits = SegLimits::new(field, n_candidates, seg_budget);
     let prune = options.early_stop > 0.0 || options.min_weight > 0.0;
-    if !prune {
+    let (samples, (density, rgb, tape, seg_input), timing) = if !prune {
         // Nothing to decide from density alone: skip the density pass (for network fields it
         // costs nearly as much as the full pass).
-        let (density, rgb, tape, seg_input) = evaluate(field, &candidates, record, seg_limits, buffers);
+        let out = evaluate(field, &candidates, record, seg_limits, buffers);
         let timing = RenderTiming {
             march: t_march,
             forward: timer.elapsed().as_secs_f64() - t_march,
@@ -275,49 +275,39 @@ fn render_impl(
             kept: n_candidates,
             ..RenderTiming::default()
         };
-        return Rendered {
-            samples: candidates,
-            density,
-            rgb,
-            weights: Vec::new(),
-            colours: Vec::new(),
-            tape,
-            n_candidates,
-            coarse,
-            seg_input,
-            timing,
-        };
-    }
-
-    // Density-only pass to find where each ray terminates and which weights matter; a
-    // frozen render also takes the field's state at the kept samples from it.
-    let state_budget = if record { 0 } else { options.memory.density_state() };
-    let state_buffer = std::mem::take(&mut buffers.state);
-    let mut pass = density_pass(field, &candidates, options.early_stop, options.min_weight, state_budget, state_buffer);
-    let t_density = timer.elapsed().as_secs_f64();
-    let (mut samples, kept) = candidates.filter(|i| pass.keep[i]);
-    if options.min_weight > 0.0 {
-        samples.skipped_tau = kept.iter().map(|&i| pass.skipped_before[i as usize]).collect();
-    }
-    let t_filter = timer.elapsed().as_secs_f64();
-
-    let (density, rgb, tape, seg_input) = match pass.state.take() {
-        Some(state) => {
-            let seg = seg_limits.buffer(field, samples.len(), buffers);
-            let out = finish_from_state(field, &samples, &kept, &pass.sigma, &state, seg);
-            buffers.state = state.values;
-            out
+        (candidates, out, timing)
+    } else {
+        // Density-only pass to find where each ray terminates and which weights matter; a
+        // frozen render also takes the field's state at the kept samples from it.
+        let state_budget = if record { 0 } else { options.memory.density_state() };
+        let state_buffer = std::mem::take(&mut buffers.state);
+        let mut pass =
+            density_pass(field, &candidates, options.early_stop, options.min_weight, state_budget, state_buffer);
+        let t_density = timer.elapsed().as_secs_f64();
+        let (mut samples, kept) = candidates.filter(|i| pass.keep[i]);
+        if options.min_weight > 0.0 {
+            samples.skipped_tau = kept.iter().map(|&i| pass.skipped_before[i as usize]).collect();
         }
-        None => evaluate(field, &samples, record, seg_limits, buffers),
-    };
-    let timing = RenderTiming {
-        march: t_march,
-        density: t_density - t_march,
-        filter: t_filter - t_density,
-        forward: timer.elapsed().as_secs_f64() - t_filter,
-        candidates: n_candidates,
-        evaluated: pass.evaluated,
-        kept: samples.len(),
+        let t_filter = timer.elapsed().as_secs_f64();
+        let out = match pass.state.take() {
+            Some(state) => {
+                let seg = seg_limits.buffer(field, samples.len(), buffers);
+                let out = finish_from_state(field, &samples, &kept, &pass.sigma, &state, seg);
+                buffers.state = state.values;
+                out
+            }
+            None => evaluate(field, &samples, record, seg_limits, buffers),
+        };
+        let timing = RenderTiming {
+            march: t_march,
+            density: t_density - t_march,
+            filter: t_filter - t_density,
+            forward: timer.elapsed().as_secs_f64() - t_filter,
+            candidates: n_candidates,
+            evaluated: pass.evaluated,
+            kept: samples.len(),
+        };
+        (samples, out, timing)
     };
     Rendered {
         samples,

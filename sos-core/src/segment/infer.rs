@@ -314,6 +314,11 @@ pub struct ViewMask {
     pub foreground: Vec<bool>,
     /// The rendered colour.
     pub rgb: RgbImage,
+    /// The rendered depth the mask was decided with (as `masks.depth` chooses it;
+    /// `EMPTY_RAY_DEPTH` for empty rays), row-major; empty when not rendered here.
+    pub depth: Vec<f32>,
+    /// The rendered 3D point of each pixel (`None` for empty rays); empty when not rendered here.
+    pub points: Vec<Option<Vec3>>,
     /// What the mask was decided from ([`crate::segment::diagnostics`]), when inferred by
     /// [`MaskInference::segment`].
     pub evidence: Option<RgbImage>,
@@ -323,7 +328,16 @@ impl ViewMask {
     /// Builds a mask from cluster labels and the chosen cluster.
     pub fn new(labels: Vec<u32>, clusters: usize, foreground_cluster: usize, rgb: RgbImage) -> ViewMask {
         let foreground = labels.iter().map(|&l| l as usize == foreground_cluster).collect();
-        ViewMask { labels, clusters, foreground_cluster, foreground, rgb, evidence: None }
+        ViewMask {
+            labels,
+            clusters,
+            foreground_cluster,
+            foreground,
+            rgb,
+            depth: Vec::new(),
+            points: Vec::new(),
+            evidence: None,
+        }
     }
 
     /// The binary mask, foreground 1 (written as 255).
@@ -473,9 +487,16 @@ impl<'a> MaskInference<'a> {
         };
         let evidence = Some(evidence_image(&evidence, w, h));
         Ok(match masks.keep {
-            KeepRegions::All => {
-                ViewMask { labels, clusters: k, foreground_cluster: fg, foreground, rgb: r.rgb, evidence }
-            }
+            KeepRegions::All => ViewMask {
+                labels,
+                clusters: k,
+                foreground_cluster: fg,
+                foreground,
+                rgb: r.rgb,
+                depth: r.depth,
+                points: r.points,
+                evidence,
+            },
             // The labels become the two regions (foreground 1, background 0).
             KeepRegions::Connected => ViewMask {
                 labels: foreground.iter().map(|&f| u32::from(f)).collect(),
@@ -483,6 +504,8 @@ impl<'a> MaskInference<'a> {
                 foreground_cluster: 1,
                 foreground,
                 rgb: r.rgb,
+                depth: r.depth,
+                points: r.points,
                 evidence,
             },
         })

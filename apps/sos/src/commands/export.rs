@@ -25,11 +25,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context};
 use indicatif::{ProgressBar, ProgressStyle};
-use sos_core::camera::{axpy, Camera, Vec3};
-use sos_core::config::MaskDepth;
-use sos_core::render::composite::is_hit;
-use sos_core::render::rays::RayBatch;
-use sos_core::render::renderer::render_inference;
+use sos_core::camera::{Camera, Vec3};
 use sos_core::segment::evaluate::{write_view_pngs, ViewFolders};
 use sos_core::segment::infer::{saliency_extractor, MaskInference, ViewMask};
 use sos_core::segment::store::load_with_head;
@@ -76,26 +72,37 @@ pub const DEFAULT_MESH_RESOLUTION: usize = 128;
 /// Accepted grid nodes along the longest side of the mesh's box.
 pub const MESH_RESOLUTIONS: std::ops::RangeInclusive<usize> = 8..=1024;
 
-/// Settings of one export.
-#[derive(Debug, Clone)]
+/// Settings of one export (also the `sos export` command line's options).
+#[derive(Debug, Clone, clap::Args)]
 pub struct ExportOptions {
-    /// Checkpoint to export (default: the run's own).
+    /// Checkpoint to export (default: the run's own); it must hold a segmentation head.
+    #[arg(long)]
     pub checkpoint: Option<PathBuf>,
-    /// What to write; empty means everything.
+    /// What to write, comma-separated (default: all).
+    #[arg(long, value_enum, value_delimiter = ',', value_name = "WHAT")]
     pub what: Vec<Part>,
-    /// Cameras whose masks to render instead of the held-out views.
+    /// JSON file of cameras (`width`, `height`, `focal`, `poses`: camera-to-world 4x4
+    /// matrices) whose masks to render instead of the held-out views.
+    #[arg(long, value_name = "FILE")]
     pub poses: Option<PathBuf>,
     /// Output folder (default: `<run>/export`).
+    #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
-    /// Most points in the point cloud.
+    /// Most points in the point cloud (thinned evenly over the views' pixels).
+    #[arg(long, default_value_t = DEFAULT_MAX_POINTS)]
     pub max_points: usize,
-    /// Grid nodes along the longest side of the mesh's box.
+    /// Density grid nodes along the longest side of the mesh's box (8 to 1024).
+    #[arg(long, default_value_t = DEFAULT_MESH_RESOLUTION)]
     pub mesh_resolution: usize,
-    /// The box the mesh's grid covers.
+    /// The box the mesh's grid covers: the scene's extent, or the box around the object's points.
+    #[arg(long, value_enum, default_value = "extent")]
     pub mesh_bounds: MeshBounds,
-    /// Density of the mesh's surface (default: [`mesh::iso_level`] of the grid's cell).
+    /// Density of the mesh's surface, per unit of length (default: ln 2 / cell, one cell of it
+    /// half opaque; see [`mesh::iso_level`]).
+    #[arg(long, value_name = "SIGMA")]
     pub mesh_iso: Option<f32>,
-    /// Show progress bars.
+    /// Show progress bars (set by the caller, not a flag).
+    #[arg(skip)]
     pub progress: bool,
 }
 
@@ -285,7 +292,7 @@ impl Exporter<'_> {
         Ok(record)
     }
 
-    /// Segments every dataset view and renders its depth: the object's points (when
+    /// Segments every dataset view: the object's points (when
     /// `keep_points`), each view's evidence for the mesh (when `keep_views`), and the masks of
     /// the held-out views (when `held_out_masks`).
     fn fuse_views(&self, held_out_masks: bool, keep_points: bool, keep_views: bool) -> anyhow::Result<Fused> {
@@ -297,9 +304,12 @@ impl Exporter<'_> {
             if held_out_masks && scene.test.contains(&i) {
                 write_view_pngs(&mask, self.out, MASK_FOLDERS, &view.name)?;
             }
-            let depth = self.fuse_view(&view.camera, &mask, keep_points.then_some(&mut fused));
+            if keep_points {
+                Self::fuse_points(&mask, &mut fused);
+            }
             if keep_views {
-                fused.views.push(ViewEvidence { camera: view.camera.clone(), foreground: mask.foreground, depth });
+                let ViewMask { foreground, depth, .. } = mask;
+                fused.views.push(ViewEvidence { camera: view.camera.clone(), foreground, depth });
             }
             bar.inc(1);
         }
@@ -310,36 +320,16 @@ impl Exporter<'_> {
         Ok(fused)
     }
 
-    /// Renders the depth of `camera`'s view (the same depth its mask was decided with) and, with
-    /// `into`, adds the point and colour of every foreground pixel whose ray hit something.
-    fn fuse_view(&self, camera: &Camera, mask: &ViewMask, into: Option<&mut Fused>) -> Vec<f32> {
-        let s = self.session;
-        let rays = RayBatch::full_image(camera);
-        let (colours, _) = render_inference(
-            s.field.as_ref(),
-            s.render_context(),
-            &rays,
-            s.render_options(false),
-            s.config.render.chunk,
-            None,
-        );
-        let depth: Vec<f32> = colours
-            .iter()
-            .map(|c| match s.config.masks.depth {
-                MaskDepth::Median => c.median_depth,
-                MaskDepth::Expected => c.depth,
-            })
-            .collect();
-        if let Some(fused) = into {
-            for (i, &d) in depth.iter().enumerate() {
-                if mask.foreground[i] && is_hit(d) {
-                    fused.points.push(axpy(rays.origins[i], d, rays.directions[i]));
-                    let rgb = &mask.rgb.data[i * 3..i * 3 + 3];
-                    fused.colours.push([0, 1, 2].map(|k| (rgb[k].clamp(0.0, 1.0) * 255.0 + 0.5) as u8));
-                }
+    /// Adds the point and colour of every foreground pixel of `mask` whose ray hit something,
+    /// from the render the mask was decided with.
+    fn fuse_points(mask: &ViewMask, into: &mut Fused) {
+        for (i, point) in mask.points.iter().enumerate() {
+            if let (true, Some(p)) = (mask.foreground[i], point) {
+                into.points.push(*p);
+                let rgb = &mask.rgb.data[i * 3..i * 3 + 3];
+                into.colours.push([0, 1, 2].map(|k| (rgb[k].clamp(0.0, 1.0) * 255.0 + 0.5) as u8));
             }
         }
-        depth
     }
 
     /// Writes the fused points, evenly thinned to `max_points`, as `points.ply`.
