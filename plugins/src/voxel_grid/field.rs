@@ -22,10 +22,9 @@ pub struct VoxelGridField {
     config: VoxelGridConfig,
     contraction: Contraction,
     grid: Grid,
-    grads: Vec<f32>,
-    adam: SparseAdam,
-    touched: Vec<u32>,
-    touched_flag: Vec<bool>,
+    /// Present only while the field trains (made by the first backward pass or a restored
+    /// optimiser state): three times the grid's memory that a frozen field does not need.
+    training: Option<Training>,
     /// Softplus shift so that an empty grid has opacity `alpha_init` per voxel.
     shift: f32,
     /// World length of one voxel (converts per-voxel optical depth to world density).
@@ -42,23 +41,10 @@ impl VoxelGridField {
         let channels = 1 + 3 * n_sh;
         let res = config.initial_resolution;
         let grid = Grid::new(res, channels, 0.0);
-        let n = grid.data.len();
         let shift = (1.0 / (1.0 - config.alpha_init) - 1.0).ln();
         let voxel_length =
             extent.characteristic_length() / (config.resolution.iter().sum::<usize>() as f32 / 3.0 - 1.0);
-        VoxelGridField {
-            adam: SparseAdam::new(n, 0.9, 0.99),
-            grads: vec![0.0; n],
-            touched: Vec::new(),
-            touched_flag: vec![false; grid.n_vertices()],
-            grid,
-            config,
-            contraction,
-            shift,
-            voxel_length,
-            n_sh,
-            next_growth: 0,
-        }
+        VoxelGridField { training: None, grid, config, contraction, shift, voxel_length, n_sh, next_growth: 0 }
     }
 
     /// Current vertices per axis.
@@ -77,18 +63,9 @@ impl VoxelGridField {
 
     fn grow_to(&mut self, res: [usize; 3]) {
         self.grid = self.grid.resampled(res);
-        let n = self.grid.data.len();
-        self.grads = vec![0.0; n];
-        self.adam = SparseAdam::new(n, 0.9, 0.99);
-        self.touched.clear();
-        self.touched_flag = vec![false; self.grid.n_vertices()];
-    }
-
-    fn touch(&mut self, vertex: u32) {
-        if !self.touched_flag[vertex as usize] {
-            self.touched_flag[vertex as usize] = true;
-            self.touched.push(vertex);
-        }
+        // The moments of the old vertices mean nothing for the new ones: training starts
+        // afresh (made again by the next backward pass).
+        self.training = None;
     }
 
     fn scheduled_resolution(&self, stage: usize) -> [usize; 3] {
@@ -199,10 +176,11 @@ impl RadianceField for VoxelGridField {
         let n_vertices = self.grid.n_vertices();
         let n_tasks = rayon::current_num_threads().max(1) * 2;
         let per_task = n_vertices.div_ceil(n_tasks);
-        let new_touched: Vec<Vec<u32>> = self
+        let training = Training::of(&mut self.training, &self.grid);
+        let new_touched: Vec<Vec<u32>> = training
             .grads
             .par_chunks_mut(per_task * ch)
-            .zip(self.touched_flag.par_chunks_mut(per_task))
+            .zip(training.touched_flag.par_chunks_mut(per_task))
             .enumerate()
             .map(|(task, (grads, flags))| {
                 let lo = (task * per_task) as u32;
@@ -236,7 +214,7 @@ impl RadianceField for VoxelGridField {
             })
             .collect();
         for t in new_touched {
-            self.touched.extend(t);
+            training.touched.extend(t);
         }
     }
 
@@ -244,23 +222,32 @@ impl RadianceField for VoxelGridField {
         let ch = self.grid.channels;
         let mut lr = vec![self.config.lr_colour * lr_factor; ch];
         lr[0] = self.config.lr_density * lr_factor;
-        self.adam.step(&mut self.grid.data, &mut self.grads, &mut self.touched_flag, ch, &lr);
-        self.touched.clear();
+        let t = Training::of(&mut self.training, &self.grid);
+        t.adam.step(&mut self.grid.data, &mut t.grads, &mut t.touched_flag, ch, &lr);
+        t.touched.clear();
     }
 
     fn gradients_finite(&self) -> bool {
         let ch = self.grid.channels;
-        self.touched.iter().all(|&v| self.grads[v as usize * ch..(v as usize + 1) * ch].iter().all(|g| g.is_finite()))
+        self.training.as_ref().is_none_or(|t| {
+            t.touched.iter().all(|&v| t.grads[v as usize * ch..(v as usize + 1) * ch].iter().all(|g| g.is_finite()))
+        })
     }
 
     fn discard_gradients(&mut self) {
         let ch = self.grid.channels;
-        for &v in &self.touched {
-            let v = v as usize;
-            self.grads[v * ch..(v + 1) * ch].fill(0.0);
-            self.touched_flag[v] = false;
+        if let Some(t) = &mut self.training {
+            for &v in &t.touched {
+                let v = v as usize;
+                t.grads[v * ch..(v + 1) * ch].fill(0.0);
+                t.touched_flag[v] = false;
+            }
+            t.touched.clear();
         }
-        self.touched.clear();
+    }
+
+    fn release_training_state(&mut self) {
+        self.training = None;
     }
 
     fn seg_input_dim(&self) -> usize {
@@ -304,11 +291,15 @@ impl RadianceField for VoxelGridField {
     }
 
     fn save_optimizer_state(&self) -> Vec<u8> {
-        self.adam.to_bytes()
+        // Untrained since it was made or grown: the moments are zero, as a fresh state's are.
+        match &self.training {
+            Some(t) => t.adam.to_bytes(),
+            None => Training::fresh_adam(&self.grid).to_bytes(),
+        }
     }
 
     fn load_optimizer_state(&mut self, bytes: &[u8]) -> Result<(), sos_core::error::StateError> {
-        self.adam.load_bytes("voxel-grid", bytes)
+        Training::of(&mut self.training, &self.grid).adam.load_bytes("voxel-grid", bytes)
     }
 
     fn load_state(&mut self, bytes: &[u8]) -> Result<(), sos_core::error::StateError> {
@@ -356,7 +347,7 @@ impl RadianceField for VoxelGridField {
     }
 
     fn gradients(&self) -> Vec<f32> {
-        self.grads.clone()
+        self.training.as_ref().map_or_else(|| vec![0.0; self.grid.data.len()], |t| t.grads.clone())
     }
 
     fn coarse_to_fine(&self) -> Option<&dyn CoarseToFine> {
@@ -373,6 +364,37 @@ impl RadianceField for VoxelGridField {
             None
         } else {
             Some(self)
+        }
+    }
+}
+
+/// Gradients, the optimiser's moments and the vertices touched since the last step.
+struct Training {
+    grads: Vec<f32>,
+    adam: SparseAdam,
+    touched: Vec<u32>,
+    touched_flag: Vec<bool>,
+}
+
+impl Training {
+    /// The field's training state, made (zero) for `grid` when there is none.
+    fn of<'a>(training: &'a mut Option<Training>, grid: &Grid) -> &'a mut Training {
+        training.get_or_insert_with(|| Training {
+            grads: vec![0.0; grid.data.len()],
+            adam: Training::fresh_adam(grid),
+            touched: Vec::new(),
+            touched_flag: vec![false; grid.n_vertices()],
+        })
+    }
+
+    fn fresh_adam(grid: &Grid) -> SparseAdam {
+        SparseAdam::new(grid.data.len(), 0.9, 0.99)
+    }
+
+    fn touch(&mut self, vertex: u32) {
+        if !self.touched_flag[vertex as usize] {
+            self.touched_flag[vertex as usize] = true;
+            self.touched.push(vertex);
         }
     }
 }
@@ -408,7 +430,8 @@ impl Regularized for VoxelGridField {
         let [rx, ry, rz] = self.grid.res;
         let strides = [1usize, rx, rx * ry];
         let mut value = 0.0f64;
-        let base: Vec<u32> = self.touched.clone();
+        let t = Training::of(&mut self.training, &self.grid);
+        let base: Vec<u32> = t.touched.clone();
         for v in base {
             let v = v as usize;
             let (x, y, z) = (v % rx, (v / rx) % ry, v / (rx * ry));
@@ -418,13 +441,13 @@ impl Regularized for VoxelGridField {
                     continue;
                 }
                 let n = v + strides[a];
-                self.touch(n as u32);
+                t.touch(n as u32);
                 for j in 0..ch {
                     let lambda = if j == 0 { tv_d } else { tv_c };
                     let d = self.grid.data[n * ch + j] - self.grid.data[v * ch + j];
                     value += (lambda * d * d) as f64;
-                    self.grads[n * ch + j] += 2.0 * lambda * d;
-                    self.grads[v * ch + j] -= 2.0 * lambda * d;
+                    t.grads[n * ch + j] += 2.0 * lambda * d;
+                    t.grads[v * ch + j] -= 2.0 * lambda * d;
                 }
             }
         }
@@ -466,7 +489,7 @@ mod tests {
             (0..3).map(|i| (gd[i] * d[i] + (0..3).map(|k| gc[i][k] * c[i][k]).sum::<f32>()) as f64).sum()
         };
         f.backward(&positions, &directions, None, &gd, &gc);
-        let grads = f.grads.clone();
+        let grads = f.gradients();
         let mut checked = 0;
         for i in 0..f.grid.data.len() {
             if grads[i] == 0.0 {
@@ -498,7 +521,35 @@ mod tests {
         assert!(f.gradients_finite());
         f.step(1.0);
         assert_eq!(f.grid.data, before, "a discarded step changes nothing");
-        assert!(f.grads.iter().all(|&g| g == 0.0));
+        assert!(f.gradients().iter().all(|&g| g == 0.0));
+    }
+
+    #[test]
+    fn a_frozen_field_holds_no_training_state_and_trains_afresh_after_release() {
+        let positions = vec![[0.1, -0.3, 0.5], [-0.7, 0.2, 0.05]];
+        let directions = vec![[0.0, 0.6, 0.8], [1.0, 0.0, 0.0]];
+        let (gd, gc) = ([0.7f32, -0.2], [[0.3f32, -0.5, 0.9], [0.1, 0.2, -0.3]]);
+        let mut f = field();
+        assert!(f.training.is_none(), "a new field has nothing to train yet");
+        f.backward(&positions, &directions, None, &gd, &gc);
+        f.step(1.0);
+        assert!(f.training.is_some());
+        f.release_training_state();
+        assert!(f.training.is_none());
+        assert!(f.gradients_finite() && f.gradients().iter().all(|&g| g == 0.0));
+        // Training after the release matches a field that never trained, from the same values.
+        let mut fresh = field();
+        fresh.grid.data.clone_from(&f.grid.data);
+        for g in [&mut f, &mut fresh] {
+            g.backward(&positions, &directions, None, &gd, &gc);
+            g.step(1.0);
+        }
+        assert_eq!(f.grid.data, fresh.grid.data);
+        // An untrained field's optimiser state is a fresh one, and it loads back.
+        let mut frozen = field();
+        let bytes = frozen.save_optimizer_state();
+        frozen.load_optimizer_state(&bytes).unwrap();
+        assert_eq!(frozen.save_optimizer_state(), bytes);
     }
 
     #[test]

@@ -131,6 +131,11 @@ pub trait RadianceField: Send + Sync {
         Ok(())
     }
 
+    /// The field will not be trained again in this run (stage 2 with the field frozen): it may
+    /// drop its gradients and optimiser state to free their memory. A later backward pass or
+    /// [`RadianceField::load_optimizer_state`] must still work, starting the optimiser afresh.
+    fn release_training_state(&mut self) {}
+
     /// Hierarchical sampling, when the field wants it (default: single-pass marching).
     fn hierarchical(&self) -> Option<&dyn HierarchicalSampling> {
         None
@@ -220,6 +225,10 @@ macro_rules! pass_on_field_methods {
 
         fn load_optimizer_state(&mut self, bytes: &[u8]) -> Result<(), $crate::error::StateError> {
             self.$inner.load_optimizer_state(bytes)
+        }
+
+        fn release_training_state(&mut self) {
+            self.$inner.release_training_state()
         }
     };
 }

@@ -15,6 +15,11 @@
 //!
 //! With more than two clusters the foreground is the single chosen cluster.
 //!
+//! When most of the voting pixels lie on one of the view's large planes while, on an orbit
+//! rig, something stands off the planes near the focus (the focus fell on the ground between
+//! the members of a group), the pixels nearest the focus off the planes vote instead
+//! ([`standing_voters`]).
+//!
 //! `masks.keep = "connected"` (the default) then drops the regions of the foreground cluster
 //! that hold none of the `focus` rule's voting pixels ([`crate::segment::cleanup`]); on orbit
 //! rigs the regions that stand near the focus stay (`masks.nearby_parts`). A mask
@@ -36,7 +41,7 @@ use crate::segment::cleanup::{keep_nearby_parts, keep_seeded_regions, DepthConti
 use crate::segment::diagnostics::{evidence_image, MaskEvidence};
 use crate::segment::head::SegHead;
 use crate::segment::head_pass;
-use crate::segment::support_plane::{on_support_planes, ViewPoints};
+use crate::segment::support_plane::{PlaneCandidates, ViewPoints};
 use crate::train::session::Session;
 
 /// Largest angle (degrees) between a training camera's axis and the mean axis for which the
@@ -201,6 +206,31 @@ pub fn focus_voters(points: &[Option<Vec3>], focus: Vec3) -> Vec<usize> {
     let n_votes = ((near.len() as f64 * FOCUS_VOTE_FRACTION).ceil() as usize).clamp(1, near.len());
     near.select_nth_unstable_by(n_votes - 1, |a, b| a.0.total_cmp(&b.0));
     near[..n_votes].iter().map(|&(_, i)| i).collect()
+}
+
+/// Voters for a focus that fell on a large plane: on an orbit rig whose object is a group of
+/// things on the ground, the point the cameras look at lies on the ground between them, and
+/// its nearest pixels are the ground's. When most `voters` lie on one of the view's large
+/// `planes`, the pixels nearest `focus` off every plane vote instead, provided they all lie
+/// within `radius` of it (something stands there); `None` keeps the voters as they are.
+pub fn standing_voters(
+    points: &[Option<Vec3>],
+    voters: &[usize],
+    planes: &PlaneCandidates,
+    focus: Vec3,
+    radius: f32,
+) -> Option<Vec<usize>> {
+    if radius <= 0.0 || voters.is_empty() {
+        return None;
+    }
+    let on_planes = planes.any();
+    if voters.iter().filter(|&&i| on_planes[i]).count() * 2 < voters.len() {
+        return None;
+    }
+    let off: Vec<Option<Vec3>> = points.iter().zip(&on_planes).map(|(p, &on)| p.filter(|_| !on)).collect();
+    let standing = focus_voters(&off, focus);
+    let near = |i: &usize| off[*i].is_some_and(|p| dot(sub(p, focus), sub(p, focus)) <= radius * radius);
+    (!standing.is_empty() && standing.iter().all(near)).then_some(standing)
 }
 
 /// The cluster (of `k`) holding most of the [`focus_voters`]. A vote rather than a mean
@@ -413,9 +443,23 @@ impl<'a> MaskInference<'a> {
         let (w, h) = (r.rgb.width, r.rgb.height);
         // Nothing rendered in the centre: fall back to where the cameras look.
         let focus = self.focus.point_for(&r.depth, w, h).unwrap_or_else(|| self.session.scene.focus_point());
+        let seed = self.session.config.seed;
+        let view = ViewPoints { points: &r.points, origin: camera.origin(), width: w, height: h };
+        let planes = masks.drop_support_planes.then(|| PlaneCandidates::find(&view, seed));
+        // Only an orbit's focus is a point the object surrounds; a forward-facing one is where
+        // the view's centre happens to land.
+        let nearby_radius = match self.focus {
+            FocusTarget::Point(centre) => masks.nearby_parts * nearest_camera_distance(&self.session.scene, centre),
+            FocusTarget::Axis { .. } => 0.0,
+        };
         // Computed once: the `focus` rule votes with them, the support-plane test asks whether a
         // plane holds them, and `keep = "connected"` seeds from them.
-        let voters = focus_voters(&r.points, focus);
+        let mut voters = focus_voters(&r.points, focus);
+        if let Some(planes) = &planes {
+            if let Some(standing) = standing_voters(&r.points, &voters, planes, focus, nearby_radius) {
+                voters = standing;
+            }
+        }
         let saliency = match masks.foreground {
             ForegroundRule::Saliency => Some(self.saliency(&r.rgb, name)?),
             ForegroundRule::Focus => None,
@@ -424,19 +468,14 @@ impl<'a> MaskInference<'a> {
             Some(s) => foreground_by_saliency(labels, k, s),
             None => foreground_by_votes(labels, k, &voters),
         };
-        let support = masks.drop_support_planes.then(|| {
-            let view = ViewPoints { points: &r.points, origin: camera.origin(), width: w, height: h };
-            on_support_planes(&view, &voters, self.session.config.seed)
-        });
+        let support = planes.as_ref().map(|planes| planes.supports(&voters));
         let continuity =
             (masks.max_depth_jump > 0.0).then_some(DepthContinuity { depth: &r.depth, max_jump: masks.max_depth_jump });
-        // Only an orbit's focus is a point the object surrounds; a forward-facing one is where
-        // the view's centre happens to land.
         let nearby = match self.focus {
-            FocusTarget::Point(centre) if masks.nearby_parts > 0.0 => Some(NearbyParts {
+            FocusTarget::Point(centre) if nearby_radius > 0.0 => Some(NearbyParts {
                 points: &r.points,
                 centre,
-                radius: masks.nearby_parts * nearest_camera_distance(&self.session.scene, centre),
+                radius: nearby_radius,
                 min_standing_outline: masks.min_standing_outline,
             }),
             _ => None,
@@ -467,7 +506,7 @@ impl<'a> MaskInference<'a> {
             if share <= masks.max_border_share as f64 {
                 break;
             }
-            let seed = self.session.config.seed.wrapping_add(k as u64);
+            let seed = seed.wrapping_add(k as u64);
             let Some(split) = split_cluster(&labels, k, fg, &r.logits, r.channels, masks, seed) else { break };
             let split_fg = choose(&split, k + 1);
             let split_foreground = cut(&split, split_fg);
@@ -653,6 +692,58 @@ mod tests {
         };
         assert!(split(true));
         assert!(!split(false));
+    }
+
+    /// A camera at (0, 1.2, 2.5) looking at the origin over the ground y = 0, with two boxes
+    /// standing side by side at x = ±0.45: each pixel's point and whether it is a box's.
+    fn group_on_the_ground(width: usize, height: usize) -> (Vec<Option<Vec3>>, Vec<bool>, Vec3) {
+        let origin = [0.0f32, 1.2, 2.5];
+        let forward = normalize(sub([0.0; 3], origin));
+        let right = normalize(crate::camera::cross(forward, [0.0, 1.0, 0.0]));
+        let up = crate::camera::cross(right, forward);
+        let (mut points, mut object) = (Vec::new(), Vec::new());
+        for r in 0..height {
+            for c in 0..width {
+                let x = ((c as f32 + 0.5) / width as f32 * 2.0 - 1.0) * 0.6;
+                let y = (1.0 - (r as f32 + 0.5) / height as f32 * 2.0) * 0.45;
+                let d = normalize([0, 1, 2].map(|k| forward[k] + x * right[k] + y * up[k]));
+                let boxes = [-0.45f32, 0.45].map(|cx| {
+                    crate::render::sampler::ray_box(origin, d, [cx - 0.2, 0.0, -0.2], [cx + 0.2, 0.4, 0.2])
+                        .map(|(t, _)| t)
+                });
+                let hit_box = boxes.into_iter().flatten().reduce(f32::min);
+                let hit_ground = (d[1] < 0.0).then(|| -origin[1] / d[1]);
+                let t = match (hit_box, hit_ground) {
+                    (Some(b), Some(g)) => Some(b.min(g)),
+                    (b, g) => b.or(g),
+                };
+                object.push(hit_box.is_some() && t == hit_box);
+                points.push(t.map(|t| axpy(origin, t, d)));
+            }
+        }
+        (points, object, origin)
+    }
+
+    #[test]
+    fn a_focus_on_the_ground_between_a_group_votes_with_what_stands_there() {
+        let (w, h) = (96, 72);
+        let (points, object, origin) = group_on_the_ground(w, h);
+        let focus = [0.0; 3];
+        let voters = focus_voters(&points, focus);
+        assert!(voters.iter().all(|&i| !object[i]), "the nearest pixels are the ground's");
+        let view = ViewPoints { points: &points, origin, width: w, height: h };
+        let planes = PlaneCandidates::find(&view, 3);
+        let standing = standing_voters(&points, &voters, &planes, focus, 1.0).expect("voters move off the ground");
+        assert!(!standing.is_empty() && standing.iter().all(|&i| object[i]), "the boxes' pixels vote");
+        // With the ground no longer holding the voters, it is a support.
+        let support = planes.supports(&standing);
+        let ground = (0..w * h).filter(|&i| points[i].is_some() && !object[i]).count();
+        let dropped = (0..w * h).filter(|&i| support[i] && !object[i]).count();
+        assert!(dropped as f64 > 0.95 * ground as f64, "{dropped} of {ground} ground pixels dropped");
+        // Nothing stands within the radius: the voters stay.
+        assert_eq!(standing_voters(&points, &voters, &planes, focus, 0.05), None);
+        // Voters off the planes already: nothing to change.
+        assert_eq!(standing_voters(&points, &standing, &planes, focus, 1.0), None);
     }
 
     #[test]

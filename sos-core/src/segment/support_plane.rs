@@ -101,36 +101,67 @@ impl ViewPoints<'_> {
     }
 }
 
+/// The large planes of one view that reach two of its borders: every plane that could be a
+/// support, before asking whether the object lies in it.
+#[derive(Debug, Clone)]
+pub struct PlaneCandidates {
+    /// Per plane, the view's pixels that lie on it (row-major).
+    on: Vec<Vec<bool>>,
+    pixels: usize,
+}
+
+impl PlaneCandidates {
+    /// Finds the view's large planes (see the module documentation) with a fixed `seed`.
+    pub fn find(view: &ViewPoints, seed: u64) -> PlaneCandidates {
+        let n = view.points.len();
+        let mut planes = PlaneCandidates { on: Vec::new(), pixels: n };
+        if view.width == 0 || view.height == 0 {
+            return planes;
+        }
+        let mut left: Vec<usize> = (0..n).filter(|&i| view.points[i].is_some()).collect();
+        let total = left.len();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        for _ in 0..MAX_PLANES {
+            let Some(plane) = best_plane(view, &left, &mut rng) else { break };
+            let on: Vec<bool> = (0..n).map(|i| view.on(&plane, i)).collect();
+            let held = left.iter().filter(|&&i| on[i]).count();
+            if (held as f64) < MIN_PLANE_SHARE * total as f64 {
+                break;
+            }
+            left.retain(|&i| !on[i]);
+            if view.reaches_two_borders(&on) {
+                planes.on.push(on);
+            }
+            if left.len() < 3 {
+                break;
+            }
+        }
+        planes
+    }
+
+    /// Pixels on any of the planes.
+    pub fn any(&self) -> Vec<bool> {
+        self.supports(&[])
+    }
+
+    /// Pixels on the support planes: the candidates that hold fewer than half of `voters`
+    /// (the pixels nearest the focus, the object's).
+    pub fn supports(&self, voters: &[usize]) -> Vec<bool> {
+        let mut support = vec![false; self.pixels];
+        for on in &self.on {
+            let object_on_it = voters.iter().filter(|&&i| on[i]).count() * 2 >= voters.len().max(1);
+            if !object_on_it {
+                support.iter_mut().zip(on).for_each(|(s, &o)| *s |= o);
+            }
+        }
+        support
+    }
+}
+
 /// Pixels of the view that lie on a support plane (see the module documentation); `voters`
 /// are the pixels nearest the focus.
 pub fn on_support_planes(view: &ViewPoints, voters: &[usize], seed: u64) -> Vec<bool> {
-    let n = view.points.len();
-    let mut support = vec![false; n];
-    if view.width == 0 || view.height == 0 {
-        return support;
-    }
-    let mut left: Vec<usize> = (0..n).filter(|&i| view.points[i].is_some()).collect();
-    let total = left.len();
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-    for _ in 0..MAX_PLANES {
-        let Some(plane) = best_plane(view, &left, &mut rng) else { break };
-        let on: Vec<bool> = (0..n).map(|i| view.on(&plane, i)).collect();
-        let held = left.iter().filter(|&&i| on[i]).count();
-        if (held as f64) < MIN_PLANE_SHARE * total as f64 {
-            break;
-        }
-        let object_on_it = voters.iter().filter(|&&i| on[i]).count() * 2 >= voters.len().max(1);
-        if !object_on_it && view.reaches_two_borders(&on) {
-            for (s, o) in support.iter_mut().zip(&on) {
-                *s |= o;
-            }
-        }
-        left.retain(|&i| !on[i]);
-        if left.len() < 3 {
-            break;
-        }
-    }
-    support
+    PlaneCandidates::find(view, seed).supports(voters)
 }
 
 /// The RANSAC plane holding most of `candidates`, refined on its inliers.

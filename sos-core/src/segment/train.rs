@@ -155,6 +155,10 @@ pub fn train_segmentation_observed(
 ) -> Result<SegStepStats, RunError> {
     let cfg = session.config.segment.clone();
     let joint = cfg.photometric_weight > 0.0;
+    if !joint {
+        // The frozen field's gradients and optimiser moments would only hold memory.
+        session.field.release_training_state();
+    }
     let layout = PatchLayout { side: cfg.patch_size as usize };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed.wrapping_add(0x5E6 + seg.step as u64));
     observer.stage_begins(Stage::Segmentation, seg.step, cfg.steps);

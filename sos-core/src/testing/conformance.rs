@@ -1,7 +1,7 @@
 //! The conformance suite: what every implementation of a plugin role must do, checked on any
 //! registered kind without a list of kinds to edit. A plugin crate runs it from a test:
 //!
-//! ```ignore
+//! ```text
 //! use my_plugin as _; // links the kinds
 //! use sos_plugins as _; // the built-in teacher, miner, losses and datasets a run needs
 //!

@@ -18,7 +18,33 @@ const CHECKSUM_BYTES: usize = 8;
 /// FNV-1a (64 bits) of `bytes`: not a cryptographic hash, but any single flipped bit or byte
 /// changes it, which is what a checkpoint needs to catch damage on disk or in transfer.
 fn checksum(bytes: &[u8]) -> u64 {
-    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3))
+    checksum_more(FNV_OFFSET, bytes)
+}
+
+const FNV_OFFSET: u64 = 0xcbf2_9ce4_8422_2325;
+
+/// FNV-1a of `bytes` continued from the state `hash`.
+fn checksum_more(hash: u64, bytes: &[u8]) -> u64 {
+    bytes.iter().fold(hash, |h, &b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3))
+}
+
+/// A writer that keeps the checksum of everything written through it, so a checkpoint streams
+/// to its file instead of being assembled in memory first (a copy of the field's size).
+struct Checksummed<W> {
+    inner: W,
+    hash: u64,
+}
+
+impl<W: Write> Write for Checksummed<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.hash = checksum_more(self.hash, &buf[..n]);
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
 }
 
 /// The suffix of a temporary checkpoint being written; a leftover one is from a killed run.
@@ -56,22 +82,19 @@ pub fn save(path: &Path, meta: &CheckpointMeta, sections: &[(&str, &[u8])]) -> R
         std::fs::create_dir_all(parent).map_err(err)?;
     }
     let tmp = path.with_extension(TEMPORARY_EXTENSION);
-    let mut bytes = Vec::new();
     let header = serde_json::to_vec(meta).expect("checkpoint meta serialises");
-    bytes.extend_from_slice(MAGIC);
-    write_block(&mut bytes, &header).map_err(err)?;
-    bytes.extend_from_slice(&(sections.len() as u64).to_le_bytes());
+    let file = std::io::BufWriter::new(std::fs::File::create(&tmp).map_err(err)?);
+    let mut f = Checksummed { inner: file, hash: FNV_OFFSET };
+    f.write_all(MAGIC).map_err(err)?;
+    write_block(&mut f, &header).map_err(err)?;
+    f.write_all(&(sections.len() as u64).to_le_bytes()).map_err(err)?;
     for (name, data) in sections {
-        write_block(&mut bytes, name.as_bytes()).map_err(err)?;
-        write_block(&mut bytes, data).map_err(err)?;
+        write_block(&mut f, name.as_bytes()).map_err(err)?;
+        write_block(&mut f, data).map_err(err)?;
     }
-    let sum = checksum(&bytes);
-    {
-        let mut f = std::io::BufWriter::new(std::fs::File::create(&tmp).map_err(err)?);
-        f.write_all(&bytes).map_err(err)?;
-        f.write_all(&sum.to_le_bytes()).map_err(err)?;
-        f.into_inner().map_err(|e| err(e.into_error()))?.sync_all().map_err(err)?;
-    }
+    let (mut file, sum) = (f.inner, f.hash);
+    file.write_all(&sum.to_le_bytes()).map_err(err)?;
+    file.into_inner().map_err(|e| err(e.into_error()))?.sync_all().map_err(err)?;
     std::fs::rename(&tmp, path).map_err(err)
 }
 
