@@ -210,9 +210,9 @@ pub fn focus_voters(points: &[Option<Vec3>], focus: Vec3) -> Vec<usize> {
 
 /// Voters for a focus that fell on a large plane: on an orbit rig whose object is a group of
 /// things on the ground, the point the cameras look at lies on the ground between them, and
-/// its nearest pixels are the ground's. When most `voters` lie on one of the view's large
-/// `planes`, the pixels nearest `focus` off every plane vote instead, provided they all lie
-/// within `radius` of it (something stands there); `None` keeps the voters as they are.
+/// its nearest pixels are the ground's. When most `voters` lie on the view's large `planes`,
+/// the pixels nearest `focus` off every plane vote instead, provided they all lie within
+/// `radius` of it (something stands there); `None` keeps the voters as they are.
 pub fn standing_voters(
     points: &[Option<Vec3>],
     voters: &[usize],
@@ -229,7 +229,12 @@ pub fn standing_voters(
     }
     let off: Vec<Option<Vec3>> = points.iter().zip(&on_planes).map(|(p, &on)| p.filter(|_| !on)).collect();
     let standing = focus_voters(&off, focus);
-    let near = |i: &usize| off[*i].is_some_and(|p| dot(sub(p, focus), sub(p, focus)) <= radius * radius);
+    let near = |i: &usize| {
+        off[*i].is_some_and(|p| {
+            let d = sub(p, focus);
+            dot(d, d) <= radius * radius
+        })
+    };
     (!standing.is_empty() && standing.iter().all(near)).then_some(standing)
 }
 
@@ -695,32 +700,18 @@ mod tests {
     }
 
     /// A camera at (0, 1.2, 2.5) looking at the origin over the ground y = 0, with two boxes
-    /// standing side by side at x = ±0.45: each pixel's point and whether it is a box's.
+    /// standing side by side at x = ±0.45.
     fn group_on_the_ground(width: usize, height: usize) -> (Vec<Option<Vec3>>, Vec<bool>, Vec3) {
         let origin = [0.0f32, 1.2, 2.5];
         let forward = normalize(sub([0.0; 3], origin));
         let right = normalize(crate::camera::cross(forward, [0.0, 1.0, 0.0]));
         let up = crate::camera::cross(right, forward);
-        let (mut points, mut object) = (Vec::new(), Vec::new());
-        for r in 0..height {
-            for c in 0..width {
-                let x = ((c as f32 + 0.5) / width as f32 * 2.0 - 1.0) * 0.6;
-                let y = (1.0 - (r as f32 + 0.5) / height as f32 * 2.0) * 0.45;
-                let d = normalize([0, 1, 2].map(|k| forward[k] + x * right[k] + y * up[k]));
-                let boxes = [-0.45f32, 0.45].map(|cx| {
-                    crate::render::sampler::ray_box(origin, d, [cx - 0.2, 0.0, -0.2], [cx + 0.2, 0.4, 0.2])
-                        .map(|(t, _)| t)
-                });
-                let hit_box = boxes.into_iter().flatten().reduce(f32::min);
-                let hit_ground = (d[1] < 0.0).then(|| -origin[1] / d[1]);
-                let t = match (hit_box, hit_ground) {
-                    (Some(b), Some(g)) => Some(b.min(g)),
-                    (b, g) => b.or(g),
-                };
-                object.push(hit_box.is_some() && t == hit_box);
-                points.push(t.map(|t| axpy(origin, t, d)));
-            }
-        }
+        let boxes = [-0.45f32, 0.45].map(|cx| [[cx - 0.2, 0.0, -0.2], [cx + 0.2, 0.4, 0.2]]);
+        let (points, object) =
+            crate::segment::support_plane::test_view::boxes_on_the_ground(origin, width, height, &boxes, |x, y| {
+                let (x, y) = (x * 0.6, y * 0.45);
+                normalize([0, 1, 2].map(|k| forward[k] + x * right[k] + y * up[k]))
+            });
         (points, object, origin)
     }
 

@@ -158,12 +158,6 @@ impl PlaneCandidates {
     }
 }
 
-/// Pixels of the view that lie on a support plane (see the module documentation); `voters`
-/// are the pixels nearest the focus.
-pub fn on_support_planes(view: &ViewPoints, voters: &[usize], seed: u64) -> Vec<bool> {
-    PlaneCandidates::find(view, seed).supports(voters)
-}
-
 /// The RANSAC plane holding most of `candidates`, refined on its inliers.
 fn best_plane(view: &ViewPoints, candidates: &[usize], rng: &mut impl Rng) -> Option<Plane> {
     if candidates.len() < 3 {
@@ -246,37 +240,56 @@ fn smallest_eigenvector(a: [[f64; 3]; 3]) -> Option<[f64; 3]> {
         .filter(|v| norm2(*v) > 1e-30)
 }
 
+/// Views of boxes standing on the ground plane y = 0, ray-cast exactly, for the tests of the
+/// mask rules.
 #[cfg(test)]
-mod tests {
-    use super::*;
+pub(crate) mod test_view {
+    use crate::camera::{axpy, Vec3};
 
-    /// A camera at (0, 1, 3) looking along −Z over a ground plane y = 0, with a box standing on
-    /// it in the middle of the view: each pixel's point is where its ray first meets either.
-    fn scene(width: usize, height: usize) -> (Vec<Option<Vec3>>, Vec<bool>) {
-        let origin = [0.0f32, 1.0, 3.0];
-        let mut points = Vec::new();
-        let mut object = Vec::new();
+    /// Each pixel's point where its ray from `origin` first meets the ground or one of `boxes`
+    /// (`[min, max]` corners), and whether that is a box; `direction(x, y)` gives the unit ray
+    /// of the image coordinates `x, y ∈ (−1, 1)` (`y` up).
+    pub(crate) fn boxes_on_the_ground(
+        origin: Vec3,
+        width: usize,
+        height: usize,
+        boxes: &[[Vec3; 2]],
+        direction: impl Fn(f32, f32) -> Vec3,
+    ) -> (Vec<Option<Vec3>>, Vec<bool>) {
+        let (mut points, mut object) = (Vec::new(), Vec::new());
         for r in 0..height {
             for c in 0..width {
                 let x = (c as f32 + 0.5) / width as f32 * 2.0 - 1.0;
                 let y = 1.0 - (r as f32 + 0.5) / height as f32 * 2.0;
-                let d = normalize([x, y * 0.75 - 0.3, -1.0]);
-                // Box [-0.4, 0.4] x [0, 0.8] x [-0.4, 0.4].
-                let hit_box = slab_hit(origin, d, [-0.4, 0.0, -0.4], [0.4, 0.8, 0.4]);
+                let d = direction(x, y);
+                let hit_box = boxes
+                    .iter()
+                    .filter_map(|[min, max]| crate::render::sampler::ray_box(origin, d, *min, *max).map(|(t, _)| t))
+                    .reduce(f32::min);
                 let hit_ground = (d[1] < 0.0).then(|| -origin[1] / d[1]);
                 let t = match (hit_box, hit_ground) {
                     (Some(b), Some(g)) => Some(b.min(g)),
                     (b, g) => b.or(g),
                 };
                 object.push(hit_box.is_some() && t == hit_box);
-                points.push(t.map(|t| crate::camera::axpy(origin, t, d)));
+                points.push(t.map(|t| axpy(origin, t, d)));
             }
         }
         (points, object)
     }
+}
 
-    fn slab_hit(o: Vec3, d: Vec3, min: Vec3, max: Vec3) -> Option<f32> {
-        crate::render::sampler::ray_box(o, d, min, max).map(|(t0, _)| t0)
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A camera at (0, 1, 3) looking along −Z over a ground plane y = 0, with a box standing on
+    /// it in the middle of the view.
+    fn scene(width: usize, height: usize) -> (Vec<Option<Vec3>>, Vec<bool>) {
+        let the_box = [[-0.4, 0.0, -0.4], [0.4, 0.8, 0.4]];
+        test_view::boxes_on_the_ground([0.0, 1.0, 3.0], width, height, &[the_box], |x, y| {
+            normalize([x, y * 0.75 - 0.3, -1.0])
+        })
     }
 
     #[test]
@@ -285,7 +298,7 @@ mod tests {
         let (points, object) = scene(w, h);
         let view = ViewPoints { points: &points, origin: [0.0, 1.0, 3.0], width: w, height: h };
         let voters: Vec<usize> = (0..points.len()).filter(|&i| object[i]).take(50).collect();
-        let support = on_support_planes(&view, &voters, 7);
+        let support = PlaneCandidates::find(&view, 7).supports(&voters);
         let ground = (0..points.len()).filter(|&i| points[i].is_some() && !object[i]).count();
         let ground_found = (0..points.len()).filter(|&i| support[i] && !object[i]).count();
         assert!(ground_found as f64 > 0.95 * ground as f64, "{ground_found} of {ground} ground pixels");
@@ -293,7 +306,7 @@ mod tests {
         let box_pixels = object.iter().filter(|&&o| o).count();
         assert!((box_lost as f64) < 0.05 * box_pixels as f64, "{box_lost} of {box_pixels} box pixels dropped");
         // Same seed, same answer.
-        assert_eq!(support, on_support_planes(&view, &voters, 7));
+        assert_eq!(support, PlaneCandidates::find(&view, 7).supports(&voters));
     }
 
     #[test]
@@ -303,7 +316,7 @@ mod tests {
         let view = ViewPoints { points: &points, origin: [0.0, 1.0, 3.0], width: w, height: h };
         // Voters on the ground: the "object" lies in the plane, so nothing is dropped from it.
         let voters: Vec<usize> = (0..points.len()).filter(|&i| points[i].is_some() && !object[i]).take(50).collect();
-        let support = on_support_planes(&view, &voters, 7);
+        let support = PlaneCandidates::find(&view, 7).supports(&voters);
         assert!(voters.iter().all(|&i| !support[i]));
     }
 
