@@ -56,7 +56,9 @@ restarts = 2
 "#
     );
     let config = RunConfig::parse(&text, Path::new("degenerate.toml")).unwrap();
-    let dir = std::env::temp_dir().join(format!("sos-degenerate-{tag}-{}", std::process::id()));
+    // In Cargo's scratch folder for integration tests, emptied first: reruns reuse it.
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("degenerate-{tag}"));
+    std::fs::remove_dir_all(&dir).ok();
     Session::from_config(config, &dir).unwrap()
 }
 

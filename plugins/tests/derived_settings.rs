@@ -56,7 +56,7 @@ fn without_stage_two_nothing_of_it_is_derived() {
 
 #[test]
 fn a_checkpoint_refuses_a_scene_with_another_extent() {
-    let dir = std::env::temp_dir().join(format!("sos-derived-resume-{}", std::process::id()));
+    let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("derived-resume");
     std::fs::remove_dir_all(&dir).ok();
     let text = |rig: &str| {
         format!(

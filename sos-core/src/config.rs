@@ -104,6 +104,18 @@ pub struct SegmentConfig {
     /// Weight of the photometric loss on the patch rays; above 0 the field is trained jointly
     /// with the head (an ablation; the paper freezes it).
     pub photometric_weight: f32,
+    /// Stop before `steps` once the masks settle: every `check_every` steps the masks of a few
+    /// training views are decided at a small size, and when at most `stable_change` of their
+    /// pixels flipped (away from the outlines) at two checks in a row, stage 2 ends
+    /// ([`crate::segment::stability`]). Needs no ground truth. Off by default: the masks
+    /// settle before their outlines are refined (the main job settles at about a third of its
+    /// steps, 0.01 mIoU short of the full run).
+    pub stop_when_stable: bool,
+    /// Largest share of probe pixels whose mask may flip between two checks for the masks to
+    /// count as settled.
+    pub stable_change: f32,
+    /// Steps between two stability checks.
+    pub check_every: usize,
 }
 
 impl Default for SegmentConfig {
@@ -121,6 +133,9 @@ impl Default for SegmentConfig {
             teacher_source: TeacherSource::Rendered,
             cache_teacher: true,
             photometric_weight: 0.0,
+            stop_when_stable: false,
+            stable_change: 0.002,
+            check_every: 10,
         }
     }
 }
@@ -465,6 +480,12 @@ impl RunConfig {
             }
             if !(g.photometric_weight >= 0.0 && g.photometric_weight.is_finite()) {
                 return Err(invalid("segment.photometric_weight", "must be zero or positive"));
+            }
+            if !(0.0..=1.0).contains(&g.stable_change) {
+                return Err(invalid("segment.stable_change", "must be a share in [0, 1]"));
+            }
+            if g.stop_when_stable && g.check_every == 0 {
+                return Err(invalid("segment.check_every", "must be at least 1 with `stop_when_stable = true`"));
             }
         }
         if self.head.outputs == 0 || self.head.hidden.contains(&0) {

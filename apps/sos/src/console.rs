@@ -155,9 +155,10 @@ impl TrainObserver for Console {
             seg.teacher.hits + seg.teacher.misses
         ));
         self.bar.set_position(step as u64);
-        if self.logs(step) {
+        if self.logs(step) || (!self.show_bars && stats.mask_change.is_some()) {
+            let change = stats.mask_change.map(|c| format!(", masks changed {:.2}%", 100.0 * c)).unwrap_or_default();
             eprintln!(
-                "stage 2 step {}/{}: loss {:+.5}, {:.2} s/step, {:.0} head samples/ray, {:.0} s",
+                "stage 2 step {}/{}: loss {:+.5}, {:.2} s/step, {:.0} head samples/ray{change}, {:.0} s",
                 step,
                 self.total,
                 stats.total,

@@ -47,11 +47,12 @@ pub fn weights(variant: &str) -> Vec<(String, F32Array)> {
     }
 }
 
-/// A fresh empty folder under the system temp dir, unique to this process and call.
+/// A fresh empty folder in Cargo's scratch folder for integration tests (`target/tmp`), unique
+/// to this call; emptied first, so reruns of the suite reuse it instead of adding copies.
 pub fn temp_dir(test: &str) -> PathBuf {
     static COUNT: AtomicUsize = AtomicUsize::new(0);
     let n = COUNT.fetch_add(1, Ordering::SeqCst);
-    let dir = std::env::temp_dir().join(format!("sos-backbones-{}-{test}-{n}", std::process::id()));
+    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("backbones-{test}-{n}"));
     std::fs::remove_dir_all(&dir).ok();
     std::fs::create_dir_all(&dir).expect("temp dir");
     dir

@@ -335,6 +335,10 @@ impl RadianceField for VoxelGridField {
         self.grid.data.clone()
     }
 
+    fn first_non_finite_parameter(&self) -> Option<usize> {
+        self.grid.data.iter().position(|v| !v.is_finite())
+    }
+
     fn set_parameters(&mut self, values: &[f32]) -> Result<(), sos_core::error::StateError> {
         if values.len() != self.grid.data.len() {
             return Err(sos_core::error::StateError::Mismatch {

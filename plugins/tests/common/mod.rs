@@ -7,7 +7,8 @@ use sos_core::config::RunConfig;
 use sos_core::train::Session;
 
 /// A session of `field` on the `rig` camera rig with the extra `[field]` lines `field_keys`,
-/// training stage 1 for `steps` steps; its run folder is unique to `tag` and this process.
+/// training stage 1 for `steps` steps; its run folder, unique to `tag`, lies in Cargo's scratch
+/// folder for integration tests (`target/tmp`) and is emptied first, so reruns reuse it.
 pub fn tiny_session(field: &str, rig: &str, field_keys: &str, steps: usize, tag: &str) -> Session {
     let text = format!(
         r#"
@@ -36,6 +37,14 @@ stride = 2
 "#
     );
     let config = RunConfig::parse(&text, Path::new("tiny.toml")).unwrap();
-    let dir = std::env::temp_dir().join(format!("sos-tiny-{field}-{tag}-{}", std::process::id()));
+    let dir = scratch_dir(&format!("tiny-{field}-{tag}"));
     Session::from_config(config, &dir).unwrap()
+}
+
+/// An empty folder `name` in Cargo's scratch folder for integration tests (`target/tmp`).
+pub fn scratch_dir(name: &str) -> std::path::PathBuf {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(name);
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
 }

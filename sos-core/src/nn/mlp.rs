@@ -52,6 +52,16 @@ impl MlpTape {
     pub fn batch_size(&self) -> usize {
         self.n
     }
+
+    /// Batch size, input, hidden activations and output, for [`super::CompactTape`].
+    pub(super) fn parts(&self) -> (usize, &[f32], &[Vec<f32>], &[f32]) {
+        (self.n, &self.input, &self.hidden, &self.output)
+    }
+
+    /// [`MlpTape::parts`], to overwrite.
+    pub(super) fn parts_mut(&mut self) -> (&mut usize, &mut Vec<f32>, &mut Vec<Vec<f32>>, &mut Vec<f32>) {
+        (&mut self.n, &mut self.input, &mut self.hidden, &mut self.output)
+    }
 }
 
 impl Mlp {

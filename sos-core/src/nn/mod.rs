@@ -6,6 +6,7 @@
 
 pub mod activation;
 pub mod adam;
+pub mod compact_tape;
 pub mod linear;
 pub mod matmul;
 pub mod mlp;
@@ -13,6 +14,7 @@ pub mod param;
 
 pub use activation::{add_column_sums, Activation};
 pub use adam::Adam;
+pub use compact_tape::CompactTape;
 pub use linear::Linear;
 pub use matmul::{matmul, MatRef, PARALLEL_MIN_MACS};
 pub use mlp::{Mlp, MlpTape};

@@ -110,6 +110,13 @@ pub trait RadianceField: Send + Sync {
     /// training never calls it.
     fn parameters(&self) -> Vec<f32>;
 
+    /// Position (as [`RadianceField::parameters`] lays them out) of the first parameter that
+    /// is NaN or infinite, checked when a checkpoint is restored. The default copies the
+    /// parameters; a field that holds them in one array should scan it in place.
+    fn first_non_finite_parameter(&self) -> Option<usize> {
+        self.parameters().iter().position(|v| !v.is_finite())
+    }
+
     /// Overwrites every parameter from values laid out as [`RadianceField::parameters`]
     /// returns them (derived caches must follow).
     fn set_parameters(&mut self, values: &[f32]) -> Result<(), StateError>;
@@ -209,6 +216,10 @@ macro_rules! pass_on_field_methods {
 
         fn parameters(&self) -> Vec<f32> {
             self.$inner.parameters()
+        }
+
+        fn first_non_finite_parameter(&self) -> Option<usize> {
+            self.$inner.first_non_finite_parameter()
         }
 
         fn set_parameters(&mut self, values: &[f32]) -> Result<(), $crate::error::StateError> {

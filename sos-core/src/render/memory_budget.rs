@@ -8,7 +8,9 @@
 //! - the head's forward tapes, so its backward pass does not run it again.
 //!
 //! The split follows what a stage-2 step of the reference-sized NeRF fills when nothing is
-//! recomputed (state and input about equal, the tapes half as much again): 2 : 2 : 3.
+//! recomputed (state and input about equal) and leaves the tapes room for the worst case, a
+//! copy of the input beside their bfloat16 hidden layer when the input was not kept (up to
+//! half as much again): 2 : 2 : 3.
 
 use serde::{Deserialize, Serialize};
 

@@ -26,6 +26,11 @@ impl FrozenRender {
         FrozenRender { budget, buffers: FrozenBuffers::default(), tapes: HeadTapes::with_budget(budget.head_tapes()) }
     }
 
+    /// The budget the buffers are bounded by.
+    pub fn budget(&self) -> MemoryBudget {
+        self.budget
+    }
+
     /// Renders rays as a stage-2 step does, composited. With the density frozen
     /// (`joint = false`), samples whose compositing weight is below `segment.weight_threshold`
     /// are skipped (they cannot matter), and with `keep_seg_input` the field's segmentation

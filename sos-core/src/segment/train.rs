@@ -17,6 +17,7 @@ use crate::segment::frozen_render::FrozenRender;
 use crate::segment::head::SegHead;
 use crate::segment::head_pass::HeadSamples;
 use crate::segment::patches::{patch_rays, Patch, PatchSampler};
+use crate::segment::stability::MaskStability;
 use crate::segment::teacher::{captured_patch, Teacher};
 use crate::train::observer::{Severity, Stage, TrainObserver, Unobserved};
 use crate::train::session::{kind_of, Session};
@@ -52,6 +53,9 @@ pub struct Segmenter {
     pub sampler: PatchSampler,
     /// Stage-2 steps completed.
     pub step: usize,
+    /// The step at which the masks settled and stage 2 stopped before `segment.steps`
+    /// ([`crate::segment::stability`]), if it did.
+    pub settled_at: Option<usize>,
     /// Buffers reused from step to step and from call to call of [`train_segmentation`].
     frozen: FrozenRender,
 }
@@ -65,6 +69,9 @@ pub struct SegStepStats {
     pub terms: Vec<(String, f64)>,
     /// Head evaluations per ray after weight thresholding.
     pub samples_per_ray: f64,
+    /// Share of probe pixels whose mask flipped since the previous stability check, on the
+    /// steps that make one after the first ([`crate::segment::stability`]).
+    pub mask_change: Option<f64>,
     /// Where the step's time went.
     #[serde(skip)]
     pub timing: Stage2Timing,
@@ -126,8 +133,16 @@ impl Segmenter {
             losses,
             sampler,
             step: 0,
+            settled_at: None,
             frozen: FrozenRender::new(session.render_options(false).memory),
         })
+    }
+
+    /// Frees the buffers stage-2 steps reuse (about a gigabyte for a 400x300 scene), for
+    /// when training is over: mask inference then allocates into the memory they held
+    /// instead of on top of it. A later call of [`train_segmentation`] allocates them again.
+    pub fn release_step_buffers(&mut self) {
+        self.frozen = FrozenRender::new(self.frozen.budget());
     }
 }
 
@@ -162,6 +177,7 @@ pub fn train_segmentation_observed(
     let layout = PatchLayout { side: cfg.patch_size as usize };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(session.config.seed.wrapping_add(0x5E6 + seg.step as u64));
     observer.stage_begins(Stage::Segmentation, seg.step, cfg.steps);
+    let mut stability = cfg.stop_when_stable.then(|| MaskStability::new(&session.scene, cfg.stable_change as f64));
     let mut last = SegStepStats::default();
     let mut bad_steps = 0;
     while seg.step < cfg.steps {
@@ -222,7 +238,29 @@ pub fn train_segmentation_observed(
         seg.frozen.recycle(&mut r);
         seg.step += 1;
         last = stats;
+        let settled = match &mut stability {
+            Some(stability) if seg.step.is_multiple_of(cfg.check_every) && seg.step < cfg.steps => {
+                last.mask_change = stability.check(session, &seg.head, Some(seg.teacher.extractor()), seg.step)?;
+                stability.settled()
+            }
+            _ => false,
+        };
         observer.stage2_step(session, seg, &last)?;
+        if settled {
+            observer.message(
+                Severity::Notice,
+                &format!(
+                    "stage 2 step {}: the masks settled (at most {:.2}% of probe pixels flipped in each of the last \
+                     {} checks), stopping before step {} (`segment.stop_when_stable = false` runs them all)",
+                    seg.step,
+                    100.0 * cfg.stable_change,
+                    crate::segment::stability::CALM_CHECKS,
+                    cfg.steps
+                ),
+            );
+            seg.settled_at = Some(seg.step);
+            break;
+        }
     }
     observer.stage_ends(Stage::Segmentation);
     Ok(last)

@@ -426,6 +426,16 @@ fn state_round_trips(kind: &str, field: &dyn RadianceField, other: &mut dyn Radi
     }
     let wrong = vec![0.5; field.num_parameters() + 1];
     assert!(other.set_parameters(&wrong).is_err(), "{kind}: set_parameters accepts a vector of the wrong length");
+    // The check a restored checkpoint gets finds the first bad parameter where
+    // `parameters()` has it.
+    let mut theta = field.parameters();
+    assert_eq!(other.first_non_finite_parameter(), None, "{kind}: a finite field reports a non-finite parameter");
+    let last = theta.len().checked_sub(1);
+    for (i, bad) in last.into_iter().flat_map(|last| [(last, f32::INFINITY), (last / 2, f32::NAN)]) {
+        theta[i] = bad;
+        other.set_parameters(&theta).expect("same layout");
+        assert_eq!(other.first_non_finite_parameter(), Some(i), "{kind}: parameter {i} set to {bad} is not found");
+    }
 }
 
 /// A few steps of both stages on a tiny built-in scene with the field's default config: the

@@ -103,19 +103,20 @@ fn write_block(f: &mut impl Write, bytes: &[u8]) -> std::io::Result<()> {
     f.write_all(bytes)
 }
 
-/// A loaded checkpoint.
+/// A loaded checkpoint: the file's bytes, read once, and where each section lies in them (a
+/// copy per section would double the field's memory while it loads).
 #[derive(Debug)]
 pub struct Checkpoint {
     /// Metadata.
     pub meta: CheckpointMeta,
-    /// Named binary sections (e.g. `field`, `head`).
-    pub sections: Vec<(String, Vec<u8>)>,
+    bytes: Vec<u8>,
+    sections: Vec<(String, std::ops::Range<usize>)>,
 }
 
 impl Checkpoint {
     /// The bytes of section `name`.
     pub fn section(&self, name: &str) -> Option<&[u8]> {
-        self.sections.iter().find(|(n, _)| n == name).map(|(_, b)| b.as_slice())
+        self.sections.iter().find(|(n, _)| n == name).map(|(_, range)| &self.bytes[range.clone()])
     }
 }
 
@@ -124,7 +125,7 @@ pub fn load(path: &Path) -> Result<Checkpoint, RunError> {
     let fail = |message: String| RunError::Checkpoint { path: path.to_path_buf(), message };
     let bytes = std::fs::read(path)
         .map_err(|e| fail(format!("{e}; run `sos train` first or pass the checkpoint of a finished run")))?;
-    let bytes = match bytes.get(..8) {
+    let end = match bytes.get(..8) {
         Some(m) if m == MAGIC => {
             let body =
                 bytes.len().checked_sub(CHECKSUM_BYTES).filter(|&n| n >= 8).ok_or_else(|| fail("truncated".into()))?;
@@ -136,30 +137,31 @@ pub fn load(path: &Path) -> Result<Checkpoint, RunError> {
                         .into(),
                 ));
             }
-            &bytes[..body]
+            body
         }
-        Some(m) if m == MAGIC_UNCHECKED => &bytes[..],
+        Some(m) if m == MAGIC_UNCHECKED => bytes.len(),
         _ => return Err(fail("not a nerf-sos checkpoint".into())),
     };
+    let body = &bytes[..end];
     let mut pos = 8;
-    let block = |pos: &mut usize| -> Result<Vec<u8>, RunError> {
-        let len = read_u64(bytes, *pos).ok_or_else(|| fail("truncated".into()))? as usize;
+    let block = |pos: &mut usize| -> Result<std::ops::Range<usize>, RunError> {
+        let len = read_u64(body, *pos).ok_or_else(|| fail("truncated".into()))? as usize;
         let start = *pos + 8;
-        let data = bytes.get(start..start.saturating_add(len)).ok_or_else(|| fail("truncated".into()))?;
-        *pos = start + len;
-        Ok(data.to_vec())
+        let stop = start.checked_add(len).filter(|&stop| stop <= body.len()).ok_or_else(|| fail("truncated".into()))?;
+        *pos = stop;
+        Ok(start..stop)
     };
-    let meta: CheckpointMeta =
-        serde_json::from_slice(&block(&mut pos)?).map_err(|e| fail(format!("bad header: {e}")))?;
-    let n = read_u64(bytes, pos).ok_or_else(|| fail("truncated".into()))? as usize;
+    let header = block(&mut pos)?;
+    let meta: CheckpointMeta = serde_json::from_slice(&body[header]).map_err(|e| fail(format!("bad header: {e}")))?;
+    let n = read_u64(body, pos).ok_or_else(|| fail("truncated".into()))? as usize;
     pos += 8;
     let mut sections = Vec::new();
     for _ in 0..n.min(64) {
-        let name = String::from_utf8_lossy(&block(&mut pos)?).into_owned();
+        let name = String::from_utf8_lossy(&body[block(&mut pos)?]).into_owned();
         let data = block(&mut pos)?;
         sections.push((name, data));
     }
-    Ok(Checkpoint { meta, sections })
+    Ok(Checkpoint { meta, bytes, sections })
 }
 
 fn read_u64(bytes: &[u8], pos: usize) -> Option<u64> {

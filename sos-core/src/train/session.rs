@@ -196,7 +196,7 @@ impl Session {
         self.field.load_state(state).map_err(|e| fail(e.to_string()))?;
         // A diverged run can have saved NaN or infinite parameters: training on from them, or
         // rendering them, would only report nonsense.
-        if let Some(i) = self.field.parameters().iter().position(|v| !v.is_finite()) {
+        if let Some(i) = self.field.first_non_finite_parameter() {
             return Err(fail(format!(
                 "its `field` section holds a non-finite parameter (number {i}); the run that wrote it diverged: \
                  start over without the checkpoint, with a lower learning rate"

@@ -72,7 +72,15 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
             let stage2 = Instant::now();
             curves.begin_stage();
             train_segmentation_observed(&mut session, &mut seg, &mut curves)?;
+            seg.release_step_buffers();
             timing.stage2 = stage2.elapsed().as_secs_f64() - curves.stage2_eval;
+            curves.stage2_steps = seg.step;
+            if let Some(step) = seg.settled_at {
+                notes.push(format!(
+                    "stage 2 stopped at step {step} of {}: the masks settled",
+                    session.config.segment.steps
+                ));
+            }
             save_with_head(&session, &seg.head, HeadMeta { steps: seg.step })
                 .context("saving the segmentation head")?;
             let t = Instant::now();

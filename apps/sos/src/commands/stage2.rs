@@ -36,6 +36,7 @@ pub fn train(session: &mut Session, mut seg: Segmenter, progress: bool) -> anyho
         seg.head.mlp.num_parameters()
     );
     let stats = train_segmentation_observed(session, &mut seg, &mut Console::new(progress))?;
+    seg.release_step_buffers();
     let seconds = started.elapsed().as_secs_f64();
     eprintln!("stage 2 done: {} steps, last loss {:+.5}, {:.1} s", seg.step, stats.total, seconds);
     save_with_head(session, &seg.head, HeadMeta { steps: seg.step }).context("saving the segmentation head")?;

@@ -5,9 +5,11 @@ use std::process::{Command, Output};
 
 const SOS: &str = env!("CARGO_BIN_EXE_sos");
 
-/// A fresh temporary folder for one test, `<prefix>-<test>-<pid>`.
+/// A fresh folder for one test, `<prefix>-<test>` in Cargo's scratch folder for integration
+/// tests (`target/tmp`). It is emptied first, so every run of the suite reuses it instead of
+/// leaving another copy behind.
 pub fn temp_dir(prefix: &str, test: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("{prefix}-{test}-{}", std::process::id()));
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("{prefix}-{test}"));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     dir
