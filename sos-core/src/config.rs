@@ -309,6 +309,16 @@ pub struct TrainConfig {
     pub occupancy_warmup: usize,
     /// Write a checkpoint every this many steps (and at the end); 0 = only at the end.
     pub checkpoint_every: usize,
+    /// Stop before `steps` once the training loss levels off: when the PSNR of the mean loss
+    /// over each `converged_window` steps rose by less than `converged_gain` dB, two windows
+    /// in a row, after the field reached its full detail ([`crate::train::convergence`]).
+    /// Needs no held-out views. Off by default: the learning rate decays over `steps`, so a
+    /// run stopped early ends at a higher rate than a run of its length would.
+    pub stop_when_converged: bool,
+    /// Smallest rise (dB) of the windowed training PSNR that still counts as progress.
+    pub converged_gain: f32,
+    /// Steps per window of the convergence test.
+    pub converged_window: usize,
 }
 
 impl Default for TrainConfig {
@@ -328,6 +338,9 @@ impl Default for TrainConfig {
             occupancy_alpha: 1e-3,
             occupancy_warmup: 64,
             checkpoint_every: 1000,
+            stop_when_converged: false,
+            converged_gain: 0.05,
+            converged_window: 100,
         }
     }
 }
@@ -454,6 +467,12 @@ impl RunConfig {
         }
         if !(t.occupancy_alpha >= 0.0 && t.occupancy_alpha < 1.0) {
             return Err(invalid("train.occupancy_alpha", "must be in [0, 1)"));
+        }
+        if !t.converged_gain.is_finite() {
+            return Err(invalid("train.converged_gain", "must be a finite number of dB"));
+        }
+        if t.stop_when_converged && t.converged_window == 0 {
+            return Err(invalid("train.converged_window", "must be at least 1 with `stop_when_converged = true`"));
         }
         let g = &self.segment;
         if g.steps > MAX_STEPS {

@@ -67,6 +67,10 @@ pub struct CheckpointMeta {
     /// draws the rays an uninterrupted one would.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rng_position: Option<String>,
+    /// The step at which stage 1 stopped on its converged loss (`train.stop_when_converged`):
+    /// stage 1 is complete at `step` although the config asks for more.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub converged_at: Option<usize>,
 }
 
 /// Checkpoint section holding the field's optimiser state
@@ -182,6 +186,7 @@ mod tests {
             config: "x = 1".into(),
             extent: None,
             rng_position: None,
+            converged_at: None,
         };
         save(&path, &meta, &[("field", &[1, 2, 3]), ("head", &[])]).unwrap();
         let c = load(&path).unwrap();
@@ -208,6 +213,7 @@ mod tests {
             config: "y = 2".into(),
             extent: None,
             rng_position: None,
+            converged_at: None,
         };
         save(&path, &meta, &[("field", &[9, 8, 7, 6, 5])]).unwrap();
         let good = std::fs::read(&path).unwrap();
@@ -224,8 +230,14 @@ mod tests {
     fn checkpoints_without_a_checksum_still_load() {
         let dir = std::env::temp_dir().join(format!("sos-ckpt-v1-{}", std::process::id()));
         let path = dir.join("c.bin");
-        let meta =
-            CheckpointMeta { step: 1, field_kind: "k".into(), config: String::new(), extent: None, rng_position: None };
+        let meta = CheckpointMeta {
+            step: 1,
+            field_kind: "k".into(),
+            config: String::new(),
+            extent: None,
+            rng_position: None,
+            converged_at: None,
+        };
         save(&path, &meta, &[("field", &[1])]).unwrap();
         let mut bytes = std::fs::read(&path).unwrap();
         bytes.truncate(bytes.len() - CHECKSUM_BYTES);

@@ -9,6 +9,7 @@ use crate::plugin::field::plain;
 use crate::render::composite::{RayColour, RayGrad};
 use crate::render::rays::RayBatch;
 use crate::render::renderer::{render, RenderTiming};
+use crate::train::convergence::PlateauMonitor;
 use crate::train::face_pileup::{face_pileup_warning, FaceFigures, FaceMonitor};
 use crate::train::observer::{Severity, Stage, TrainObserver, Unobserved};
 use crate::train::session::Session;
@@ -130,6 +131,8 @@ pub fn train_photometric_observed(
     let mut bad_steps = 0;
     let mut faces = FaceMonitor::default();
     let mut warned_faces = false;
+    let t = &session.config.train;
+    let mut plateau = t.stop_when_converged.then(|| PlateauMonitor::new(t.converged_window, t.converged_gain as f64));
     while session.step < total {
         if plain::begin_step(session.field.as_mut(), session.step, total) {
             session.refresh_occupancy(0.0);
@@ -272,6 +275,26 @@ pub fn train_photometric_observed(
             }
         }
         observer.stage1_step(session, &last)?;
+        if let Some(monitor) = plateau.as_mut() {
+            // A growing field's loss jumps after each growth: only its final detail counts.
+            let full_detail = plain::detail_fraction(session.field.as_ref()) >= 1.0;
+            let window = monitor.observe(mse, full_detail);
+            if let (Some(w), true) = (window, monitor.converged()) {
+                observer.message(
+                    Severity::Notice,
+                    &format!(
+                        "stage 1 converged at step {} of {total}: the training PSNR ({:.2} dB over the last {} steps) \
+                     rose by less than {} dB per window twice in a row",
+                        session.step,
+                        w.psnr,
+                        session.config.train.converged_window,
+                        session.config.train.converged_gain
+                    ),
+                );
+                session.stop_converged(session.step);
+                break;
+            }
+        }
         let every = session.config.train.checkpoint_every;
         if every > 0 && session.step.is_multiple_of(every) && session.step < total {
             session.rng_position = Some(rng.get_word_pos());

@@ -49,6 +49,10 @@ pub struct Session {
     /// Where stage 1's random stream stood at `step` (a ChaCha8 word position), restored from
     /// a checkpoint so that a resumed run continues the stream; `None` for a fresh run.
     pub rng_position: Option<u128>,
+    /// The step at which stage 1 stopped because its loss levelled off
+    /// (`train.stop_when_converged`); `train.steps` then equals it, so the stage counts as
+    /// complete (a resumed run does not train on).
+    pub converged_at: Option<usize>,
 }
 
 /// The `kind` tag of a typetag'd config object.
@@ -107,6 +111,7 @@ impl Session {
             step: 0,
             derived,
             rng_position: None,
+            converged_at: None,
         })
     }
 
@@ -160,7 +165,14 @@ impl Session {
             config: self.config.to_toml(),
             extent: Some(self.scene.extent.to_string()),
             rng_position: self.rng_position.map(|p| p.to_string()),
+            converged_at: self.converged_at,
         }
+    }
+
+    /// Ends stage 1 at `step` because its loss levelled off: the stage's length becomes `step`.
+    pub fn stop_converged(&mut self, step: usize) {
+        self.converged_at = Some(step);
+        self.config.train.steps = step;
     }
 
     /// Restores the field from `path` (the run's own checkpoint when `None`).
@@ -206,6 +218,9 @@ impl Session {
             self.field.load_optimizer_state(bytes).map_err(|e| fail(format!("its optimizer section: {e}")))?;
         }
         self.step = ckpt.meta.step;
+        if let Some(step) = ckpt.meta.converged_at {
+            self.stop_converged(step);
+        }
         self.rng_position = match &ckpt.meta.rng_position {
             Some(p) => Some(p.parse().map_err(|_| fail(format!("its random-stream position `{p}` is not a number")))?),
             None => None,

@@ -56,7 +56,11 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
     curves.begin_stage();
     let stage1_stats = train_photometric_observed(&mut session, &mut curves)?;
     timing.stage1 = stage1.elapsed().as_secs_f64() - curves.stage1_eval;
+    curves.stage1_steps = session.step;
     let mut notes = Vec::new();
+    if let Some(step) = session.converged_at {
+        notes.push(format!("stage 1 stopped at step {step}: its training loss levelled off"));
+    }
     let metrics = match segmenter {
         None => {
             let t = Instant::now();

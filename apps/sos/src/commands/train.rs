@@ -53,6 +53,9 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
         "timing": { "stage1_seconds": train_seconds },
         "derived": session.derived,
     });
+    if let Some(step) = session.converged_at {
+        report["stage1_converged_at"] = step.into();
+    }
     if let Some(faces) = stats.faces {
         report["stage1_faces"] = serde_json::to_value(faces)?;
     }
