@@ -212,6 +212,18 @@ fn tiny_two_stage_run_writes_masks_and_metrics() {
     for sub in ["path", "path_masks", "path_overlays"] {
         assert!(run.join(sub).join("0001.png").is_file(), "no {sub}/0001.png");
     }
+
+    // A head of another shape than the config's: inference refuses it, saying what to do, and
+    // `sos segment` trains a new one in its place.
+    std::fs::write(dir.join("tiny.toml"), format!("{}\n[head]\noutputs = 3\n", tiny_config("tiny", 60, 2))).unwrap();
+    let out = sos(&["segment", "tiny.toml", "--masks-only"], &dir);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("2 logits") && stderr.contains("without --masks-only"), "{stderr}");
+    let out = sos(&["segment", "tiny.toml", "--quiet"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let out = sos(&["segment", "tiny.toml", "--masks-only"], &dir);
+    assert!(out.status.success(), "the retrained head does not load: {}", text(&out.stderr));
     std::fs::remove_dir_all(dir).ok();
 }
 

@@ -47,12 +47,13 @@ pub fn load_with_head(session: &mut Session, path: Option<&Path>) -> Result<(Opt
         return Ok((None, path));
     };
     let fail = |message: String| RunError::Checkpoint { path: path.clone(), message };
-    let head = SegHead::from_bytes(bytes).map_err(|e| fail(format!("{e}; rerun `sos segment` to retrain the head")))?;
+    let head = SegHead::from_bytes(bytes)
+        .map_err(|e| fail(format!("{e}; run `sos segment` (without --masks-only) to train a new one")))?;
     let non_finite =
         head.mlp.layers.iter().flat_map(|l| l.weight.value.iter().chain(&l.bias.value)).any(|v| !v.is_finite());
     if non_finite {
         return Err(fail(format!(
-            "its `{HEAD_SECTION}` section holds a non-finite parameter; rerun `sos segment` to retrain the head"
+            "its `{HEAD_SECTION}` section holds a non-finite parameter; run `sos segment` (without --masks-only) to train a new one"
         )));
     }
     let want_in = session.field.seg_input_dim();
@@ -60,7 +61,7 @@ pub fn load_with_head(session: &mut Session, path: Option<&Path>) -> Result<(Opt
     if head.mlp.in_dim() != want_in || head.outputs() != want_out {
         return Err(fail(format!(
             "its segmentation head maps {} inputs to {} logits but the config asks for {} to {}; \
-             rerun `sos segment` to retrain the head",
+             run `sos segment` (without --masks-only) to train a new one",
             head.mlp.in_dim(),
             head.outputs(),
             want_in,

@@ -18,7 +18,13 @@ pub fn run(config: &Path, checkpoint: Option<&Path>, masks_only: bool, progress:
     let mut session = Session::open(config)?;
     // Refuses a folder another run uses, or one that cannot be written, before any work.
     let _claim = session.claim_run_dir()?;
-    let (loaded, ckpt_path) = load_with_head(&mut session, checkpoint)?;
+    // Training a new head needs only the field: a saved head of another shape (the `[head]`
+    // settings changed since) is replaced, not refused.
+    let (loaded, ckpt_path) = if masks_only {
+        load_with_head(&mut session, checkpoint)?
+    } else {
+        (None, session.load_checkpoint_sections(checkpoint)?.1)
+    };
     eprintln!("loaded {} (stage 1 at step {})", ckpt_path.display(), session.step);
     let metrics_path = session.run_dir.join("metrics.json");
     let section = if masks_only {
