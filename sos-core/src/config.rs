@@ -210,6 +210,11 @@ pub struct MaskConfig {
     /// Which rendered distance places a pixel's 3D point for the mask rules (focus votes,
     /// support planes, depth continuity).
     pub depth: MaskDepth,
+    /// Compositing weight at or below which a sample's logits are left out of a rendered view;
+    /// unset: `segment.weight_threshold`, the samples the head was trained on. A higher value
+    /// evaluates the head only near the surface: fewer samples per ray, so faster views.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub head_min_weight: Option<f32>,
 }
 
 /// The rendered distance the mask rules place pixels at.
@@ -259,6 +264,7 @@ impl Default for MaskConfig {
             // A part standing on the ground steps back along its top and sides, not its base.
             min_standing_outline: 0.45,
             depth: MaskDepth::Median,
+            head_min_weight: None,
         }
     }
 }
@@ -539,6 +545,9 @@ impl RunConfig {
         }
         if !(self.masks.min_standing_outline >= 0.0 && self.masks.min_standing_outline <= 1.0) {
             return Err(invalid("masks.min_standing_outline", "must be in [0, 1], e.g. 0.45"));
+        }
+        if self.masks.head_min_weight.is_some_and(|w| !(0.0..1.0).contains(&w)) {
+            return Err(invalid("masks.head_min_weight", "must be in [0, 1), e.g. 0.01"));
         }
         for (i, l) in self.loss.iter().enumerate() {
             if !(l.weight >= 0.0 && l.weight.is_finite()) {

@@ -79,10 +79,11 @@ pub fn render_logits(session: &Session, head: &SegHead, camera: &Camera) -> Rend
     let d = head.outputs();
     let rays = RayBatch::full_image(camera);
     let eval = |positions: &[Vec3]| head_pass::sample_logits(field, head, positions);
-    // The head sees the samples stage 2 trained it on: those above the segment weight threshold
-    // (the head was never evaluated below it). That is also a few samples per ray instead of
-    // every candidate; the colour still composites every sample.
-    let extra = ExtraChannels { dim: d, min_weight: session.config.segment.weight_threshold, eval: &eval };
+    // By default the head sees the samples stage 2 trained it on: those above the segment
+    // weight threshold (the head was never evaluated below it). That is also a few samples per
+    // ray instead of every candidate; the colour still composites every sample.
+    let min_weight = session.config.masks.head_min_weight.unwrap_or(session.config.segment.weight_threshold);
+    let extra = ExtraChannels { dim: d, min_weight, eval: &eval };
     let (colours, logits) = render_inference(
         field,
         session.render_context(),
