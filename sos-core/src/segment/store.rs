@@ -15,6 +15,9 @@ pub const HEAD_SECTION: &str = "head";
 /// Checkpoint section holding [`HeadMeta`] as JSON.
 pub const HEAD_META_SECTION: &str = "head-meta";
 
+/// What to do about a saved head that cannot be used.
+const TRAIN_A_NEW_HEAD: &str = "run `sos segment` (without --masks-only) to train a new one";
+
 /// What is recorded about a saved head besides its parameters.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct HeadMeta {
@@ -47,21 +50,18 @@ pub fn load_with_head(session: &mut Session, path: Option<&Path>) -> Result<(Opt
         return Ok((None, path));
     };
     let fail = |message: String| RunError::Checkpoint { path: path.clone(), message };
-    let head = SegHead::from_bytes(bytes)
-        .map_err(|e| fail(format!("{e}; run `sos segment` (without --masks-only) to train a new one")))?;
+    let head = SegHead::from_bytes(bytes).map_err(|e| fail(format!("{e}; {TRAIN_A_NEW_HEAD}")))?;
     let non_finite =
         head.mlp.layers.iter().flat_map(|l| l.weight.value.iter().chain(&l.bias.value)).any(|v| !v.is_finite());
     if non_finite {
-        return Err(fail(format!(
-            "its `{HEAD_SECTION}` section holds a non-finite parameter; run `sos segment` (without --masks-only) to train a new one"
-        )));
+        return Err(fail(format!("its `{HEAD_SECTION}` section holds a non-finite parameter; {TRAIN_A_NEW_HEAD}")));
     }
     let want_in = session.field.seg_input_dim();
     let want_out = session.config.head.outputs;
     if head.mlp.in_dim() != want_in || head.outputs() != want_out {
         return Err(fail(format!(
             "its segmentation head maps {} inputs to {} logits but the config asks for {} to {}; \
-             run `sos segment` (without --masks-only) to train a new one",
+             {TRAIN_A_NEW_HEAD}",
             head.mlp.in_dim(),
             head.outputs(),
             want_in,
