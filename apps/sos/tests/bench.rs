@@ -53,6 +53,7 @@ fn write_bench(dir: &Path, extra: &str) {
 curve_points = 3
 seeds = [0, 1]
 out = "results"
+target = {{ miou = 0.01 }}
 
 [scenes.tiny]
 config = "base.toml"
@@ -117,6 +118,23 @@ fn a_matrix_runs_reports_caches_and_merges_from_shards() {
     assert_eq!(report["counts"]["skipped"], 4);
     let md = std::fs::read_to_string(results.join("report.md")).unwrap();
     assert!(md.contains("## tiny") && md.contains("| default |") && md.contains("steps: 2"), "{md}");
+    // Every tiny run meets the low target at its first evaluation: the time to it is the
+    // training clock to that point plus the mask time, within the run's total.
+    assert!(md.contains("To target is the wall time until the run's held-out masks met mIoU ≥ 0.01"), "{md}");
+    let tiny = report["scenes"].as_array().unwrap().iter().find(|s| s["scene"] == "tiny").unwrap();
+    let default_row = &tiny["rows"][0];
+    assert_eq!(default_row["variant"], "default");
+    let to_target = default_row["to_target"]["mean"].as_f64().unwrap_or_else(|| panic!("{default_row:#}"));
+    let total = default_row["seconds"]["total"]["mean"].as_f64().unwrap();
+    assert!(to_target > 0.0 && to_target <= total + 1e-9, "{to_target} vs {total}");
+    assert_eq!(default_row["target_missed"], 0);
+    let own = |seed: u64| {
+        let run = json(&results.join(format!("runs/tiny__default__s{seed}.json")));
+        let (t, curve) = (&run["outcome"]["timing"], &run["outcome"]["curves"]["stage2"]);
+        ["setup", "stage1", "masks"].iter().map(|k| t[k].as_f64().unwrap()).sum::<f64>()
+            + curve[0]["seconds"].as_f64().unwrap()
+    };
+    assert!((to_target - (own(0) + own(1)) / 2.0).abs() < 1e-9, "{to_target} vs {} {}", own(0), own(1));
     for plot in [
         "miou_vs_time",
         "miou_vs_time_by_scene",
@@ -177,6 +195,15 @@ fn an_unknown_key_path_fails_before_any_run() {
         stderr.contains("bench.toml") && stderr.contains("sweep `typo`") && stderr.contains("segment.stpes"),
         "{stderr}"
     );
+    assert!(!dir.join("results").exists(), "nothing may run");
+
+    // So is a target outside (0, 1].
+    let bench = std::fs::read_to_string(dir.join("bench.toml")).unwrap().replace("miou = 0.01", "miou = 95");
+    std::fs::write(dir.join("bench.toml"), bench).unwrap();
+    let out = sos(&["bench", "bench.toml"], &dir);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("bench.target") && stderr.contains("not in (0, 1]"), "{stderr}");
     assert!(!dir.join("results").exists(), "nothing may run");
     std::fs::remove_dir_all(dir).ok();
 }

@@ -148,6 +148,7 @@ fn run_file(
         baseline: file.bench.baseline.clone(),
         shard: shard_arg.map(str::to_owned),
         matrix_runs: total,
+        target: file.bench.target,
     };
     let commit = record::commit_of(&file.dir());
     let tally = run_all(&runs, &out, &meta, curve_points, &commit, progress)?;

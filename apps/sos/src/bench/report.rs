@@ -12,6 +12,7 @@ use super::plot::{write_chart, Chart, Series};
 use super::record::{RunRecord, Status};
 use super::runner::BenchMeta;
 use super::spread::{self, across_scenes, AcrossScenes};
+use super::target::Target;
 
 /// Mean and standard deviation over seeds.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -63,6 +64,13 @@ pub struct Row {
     pub cpu_stolen: Option<Stat>,
     /// The baseline row's total time over this row's (above 1: faster than the baseline).
     pub speedup: Option<f64>,
+    /// Wall seconds to the benchmark's target quality, over the seeds that reached it (see
+    /// [`super::target`]).
+    #[serde(default)]
+    pub to_target: Option<Stat>,
+    /// Finished seeds that never reached the target.
+    #[serde(default)]
+    pub target_missed: usize,
     /// Runs that failed or were skipped, with why.
     pub problems: Vec<String>,
 }
@@ -102,8 +110,7 @@ pub fn build(records: &[RunRecord], meta: &BenchMeta) -> Report {
     for r in records {
         by_scene.entry(&r.key.scene).or_default().push(r);
     }
-    let scenes: Vec<SceneTable> =
-        by_scene.into_iter().map(|(scene, runs)| scene_table(scene, &runs, &meta.baseline)).collect();
+    let scenes: Vec<SceneTable> = by_scene.into_iter().map(|(scene, runs)| scene_table(scene, &runs, meta)).collect();
     let across = across_scenes(&scenes);
     let mut counts = BTreeMap::new();
     for r in records {
@@ -136,7 +143,8 @@ pub fn build(records: &[RunRecord], meta: &BenchMeta) -> Report {
     }
 }
 
-fn scene_table(scene: &str, runs: &[&RunRecord], baseline: &str) -> SceneTable {
+fn scene_table(scene: &str, runs: &[&RunRecord], meta: &BenchMeta) -> SceneTable {
+    let baseline = meta.baseline.as_str();
     // Methods first (baseline leading), then sweep points in sweep order.
     let mut variants: Vec<(&str, Option<(&str, usize)>)> = Vec::new();
     for r in runs {
@@ -151,7 +159,7 @@ fn scene_table(scene: &str, runs: &[&RunRecord], baseline: &str) -> SceneTable {
         .iter()
         .map(|(variant, _)| {
             let mine: Vec<&&RunRecord> = runs.iter().filter(|r| r.key.variant == *variant).collect();
-            row(variant, &mine)
+            row(variant, &mine, meta.target.as_ref())
         })
         .collect();
     let base_total = rows.iter().find(|r| r.variant == baseline).and_then(|r| r.seconds.get("total")).map(|s| s.mean);
@@ -164,7 +172,7 @@ fn scene_table(scene: &str, runs: &[&RunRecord], baseline: &str) -> SceneTable {
     SceneTable { scene: scene.to_string(), rows }
 }
 
-fn row(variant: &str, runs: &[&&RunRecord]) -> Row {
+fn row(variant: &str, runs: &[&&RunRecord], target: Option<&Target>) -> Row {
     let done: Vec<&RunRecord> = runs.iter().filter(|r| r.status == Status::Done).map(|r| **r).collect();
     let outcomes: Vec<_> = done.iter().filter_map(|r| r.outcome.as_ref()).collect();
     let mut metrics = BTreeMap::new();
@@ -187,6 +195,7 @@ fn row(variant: &str, runs: &[&&RunRecord]) -> Row {
             format!("seed {}: {} ({why})", r.key.seed, if r.status == Status::Failed { "failed" } else { "skipped" })
         })
         .collect();
+    let times: Vec<Option<f64>> = target.map_or(Vec::new(), |t| outcomes.iter().map(|o| t.time_to(o)).collect());
     let first = runs[0];
     Row {
         variant: variant.to_string(),
@@ -205,6 +214,8 @@ fn row(variant: &str, runs: &[&&RunRecord]) -> Row {
         })),
         cpu_stolen: Stat::of(outcomes.iter().filter_map(|o| o.cpu_stolen)),
         speedup: None,
+        to_target: Stat::of(times.iter().flatten().copied()),
+        target_missed: times.iter().filter(|t| t.is_none()).count(),
         problems,
     }
 }
@@ -243,9 +254,18 @@ impl Report {
             self.counts.iter().map(|(k, v)| format!("{v} {k}")).collect::<Vec<_>>().join(", "),
             self.meta.baseline
         ));
+        if let Some(t) = &self.meta.target {
+            md.push_str(&format!(
+                "To target is the wall time until the run's held-out masks met {}: setup, stage 1, stage 2 up to \
+                 the first learning-curve evaluation that met it, and the run's mask time (an upper bound, as \
+                 fine as the curve's points; `never` when no evaluation met it).\n",
+                t.describe()
+            ));
+        }
+        let with_target = self.meta.target.is_some();
         for scene in &self.scenes {
             md.push_str(&format!("\n## {}\n\n", scene.scene));
-            md.push_str(&table(&scene.rows, true));
+            md.push_str(&table(&scene.rows, true, with_target));
         }
         md.push_str(&spread::markdown(&self.across));
         md.push_str("\n## Plots\n\nIn `plots/`: `miou_vs_time` and `psnr_vs_stage1_time` (each method's mean over scenes, with the Pareto front; `_by_scene`: every scene's methods), per scene `<scene>_miou_vs_time` with the Pareto front, per sweep `sweep_<name>` (mIoU) and `sweep_<name>_time`.\n");
@@ -280,18 +300,32 @@ impl Report {
     }
 }
 
-/// One scene's rows as a Markdown table.
-fn table(rows: &[Row], with_problems: bool) -> String {
-    let mut md = String::from(
-        "| method | seeds | mIoU | NV-ARI | IoU FG | IoU BG | PSNR dB | SSIM | stage 1 s | stage 2 s | masks s | total s | speed-up | peak MiB | cores busy | CPU stolen |\n\
-         |---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+/// A row's time to the target: the mean over the seeds that reached it, and how many did not.
+fn to_target(r: &Row) -> String {
+    match (&r.to_target, r.target_missed) {
+        (None, 0) => "-".into(),
+        (None, _) => "never".into(),
+        (Some(s), 0) => fmt_stat(Some(s), 1),
+        (Some(s), missed) => format!("{} ({missed} never)", fmt_stat(Some(s), 1)),
+    }
+}
+
+/// One scene's rows as a Markdown table (with the time-to-target column when the benchmark
+/// names a target).
+fn table(rows: &[Row], with_problems: bool, with_target: bool) -> String {
+    let target_head = if with_target { " to target s |" } else { "" };
+    let target_rule = if with_target { "---|" } else { "" };
+    let mut md = format!(
+        "| method | seeds | mIoU | NV-ARI | IoU FG | IoU BG | PSNR dB | SSIM | stage 1 s | stage 2 s | masks s | total s |{target_head} speed-up | peak MiB | cores busy | CPU stolen |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|---|{target_rule}---|---|---|---|\n",
     );
     let mut notes = Vec::new();
     for r in rows {
         let m = |k: &str, d| fmt_stat(r.metrics.get(k), d);
         let s = |k: &str| fmt_stat(r.seconds.get(k), 1);
+        let target_cell = if with_target { format!(" {} |", to_target(r)) } else { String::new() };
         md.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |{target_cell} {} | {} | {} | {} |\n",
             r.variant,
             r.seeds.len(),
             m("mIoU", 3),

@@ -31,6 +31,9 @@ pub struct BenchMeta {
     pub shard: Option<String>,
     /// Runs in the whole matrix (all shards).
     pub matrix_runs: usize,
+    /// The quality of the time-to-target column, if the file names one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target: Option<super::target::Target>,
 }
 
 impl BenchMeta {

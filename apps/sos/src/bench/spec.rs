@@ -6,6 +6,7 @@
 //! curve_points = 6          # learning-curve samples per stage
 //! seeds = [0]
 //! default_profile = "quick"
+//! target = { miou = 0.95, nv_ari = 0.93 }   # the report's time-to-target column
 //!
 //! [scenes.object-centric]
 //! config = "../configs/synthetic.toml"          # base run config, relative to this file
@@ -74,6 +75,8 @@ pub struct BenchSettings {
     pub default_profile: Option<String>,
     /// Output folder, relative to the benchmark file (`--out` overrides it).
     pub out: PathBuf,
+    /// The quality whose wall time to reach the report gives per run (none: no such column).
+    pub target: Option<super::target::Target>,
 }
 
 impl Default for BenchSettings {
@@ -84,6 +87,7 @@ impl Default for BenchSettings {
             seeds: vec![0],
             default_profile: None,
             out: PathBuf::from("../runs/bench"),
+            target: None,
         }
     }
 }
@@ -214,6 +218,9 @@ impl BenchFile {
         let file = self.path.display();
         if self.scenes.is_empty() {
             bail!("{file}: no `[scenes.<name>]` entry; add at least one scene");
+        }
+        if let Some(Err(why)) = self.bench.target.as_ref().map(super::target::Target::check) {
+            bail!("{file}: `bench.target` {why}");
         }
         if !self.methods.contains_key(&self.bench.baseline) {
             bail!(

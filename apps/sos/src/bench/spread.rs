@@ -154,6 +154,8 @@ mod tests {
             cores_busy: None,
             cpu_stolen: None,
             speedup: None,
+            to_target: None,
+            target_missed: 0,
             problems: Vec::new(),
         }
     }
