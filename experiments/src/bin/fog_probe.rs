@@ -8,6 +8,7 @@
 //! `cargo run --release --manifest-path experiments/Cargo.toml --bin fog_probe -- CONFIG CHECKPOINT [ALPHA]`
 
 use rand::SeedableRng;
+use sos_core::metrics::psnr_from_mse;
 use sos_core::render::occupancy::OccupancyGrid;
 use sos_core::render::rays::RayBatch;
 use sos_core::render::renderer::{render, Rendered};
@@ -79,9 +80,7 @@ fn main() {
     let mut session = Session::open(config.as_ref()).expect("config opens");
     session.load_checkpoint(Some(checkpoint.as_ref())).expect("checkpoint loads");
     if let Some(alpha) = rebake {
-        let t = &session.config.train;
-        let step = session.scene.extent.characteristic_length() / t.samples_per_ray as f32;
-        session.occupancy = Some(OccupancyGrid::new(t.occupancy_resolution, -(1.0 - alpha).ln() / step));
+        session.occupancy = Some(Session::occupancy_grid(&session.config, &session.scene, alpha));
         session.bake_occupancy();
     }
     println!("occupied cells {:.3}", session.occupancy.as_ref().map_or(1.0, OccupancyGrid::occupancy));
@@ -106,7 +105,7 @@ fn main() {
             "{}: PSNR {:.2} dB, candidates/ray {:.1}, kept/ray {:.1}, w > {HEAD_THRESHOLD}/ray {:.1}, opaque {:.3}, \
              fog in front {:.4} by depth/median {:?}",
             view.name,
-            -10.0 * (stats.squared_error / (3 * stats.rays) as f64).log10(),
+            psnr_from_mse(stats.squared_error / (3 * stats.rays) as f64),
             per_ray(stats.candidates),
             per_ray(stats.kept),
             per_ray(stats.above_threshold),

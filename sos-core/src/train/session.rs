@@ -92,12 +92,8 @@ impl Session {
         let field = config.field.build(&scene.extent, config.seed)?;
         let field_kind = kind_of(&config.field);
         let contraction = Contraction::new(&scene.extent);
-        let occupancy = config.train.occupancy.then(|| {
-            let t = &config.train;
-            let delta = scene.extent.characteristic_length() / t.samples_per_ray as f32;
-            let threshold = -(1.0 - t.occupancy_alpha).ln() / delta;
-            OccupancyGrid::new(t.occupancy_resolution, threshold)
-        });
+        let occupancy =
+            config.train.occupancy.then(|| Session::occupancy_grid(&config, &scene, config.train.occupancy_alpha));
         let run_dir = config_dir.join(&config.output_dir).join(&config.name);
         Ok(Session {
             config,
@@ -113,6 +109,15 @@ impl Session {
             rng_position: None,
             converged_at: None,
         })
+    }
+
+    /// An empty-space grid for `config`'s stage 1 on `scene` whose cells count as occupied when
+    /// one candidate step through them has at least opacity `alpha` (`train.occupancy_alpha`
+    /// for the run's own grid).
+    pub fn occupancy_grid(config: &RunConfig, scene: &Scene, alpha: f32) -> OccupancyGrid {
+        let t = &config.train;
+        let step = scene.extent.characteristic_length() / t.samples_per_ray as f32;
+        OccupancyGrid::new(t.occupancy_resolution, -(1.0 - alpha).ln() / step)
     }
 
     /// What plugins built for this run need: relative paths resolve against the config's

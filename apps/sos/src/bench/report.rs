@@ -301,7 +301,7 @@ impl Report {
 }
 
 /// A row's time to the target: the mean over the seeds that reached it, and how many did not.
-fn to_target(r: &Row) -> String {
+fn to_target_text(r: &Row) -> String {
     match (&r.to_target, r.target_missed) {
         (None, 0) => "-".into(),
         (None, _) => "never".into(),
@@ -323,7 +323,7 @@ fn table(rows: &[Row], with_problems: bool, with_target: bool) -> String {
     for r in rows {
         let m = |k: &str, d| fmt_stat(r.metrics.get(k), d);
         let s = |k: &str| fmt_stat(r.seconds.get(k), 1);
-        let target_cell = if with_target { format!(" {} |", to_target(r)) } else { String::new() };
+        let target_cell = if with_target { format!(" {} |", to_target_text(r)) } else { String::new() };
         md.push_str(&format!(
             "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |{target_cell} {} | {} | {} | {} |\n",
             r.variant,
