@@ -215,6 +215,21 @@ pub struct MaskConfig {
     /// evaluates the head only near the surface: fewer samples per ray, so faster views.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub head_min_weight: Option<f32>,
+    /// Where a rendered view's logits come from.
+    pub logits: LogitSource,
+}
+
+/// How a rendered view's per-pixel logits are formed ([`crate::segment::infer::render_logits`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LogitSource {
+    /// The head over every sample above `head_min_weight`, composited with the colour's
+    /// weights: what stage 2 trains (the paper's).
+    Composited,
+    /// The head once per ray, at the point `depth` places the pixel at, times the ray's
+    /// opacity: the composited sum when the weight sits on one surface, for one head
+    /// evaluation per ray instead of dozens.
+    Surface,
 }
 
 /// The rendered distance the mask rules place pixels at.
@@ -265,6 +280,7 @@ impl Default for MaskConfig {
             min_standing_outline: 0.45,
             depth: MaskDepth::Median,
             head_min_weight: None,
+            logits: LogitSource::Composited,
         }
     }
 }

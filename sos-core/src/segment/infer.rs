@@ -27,7 +27,7 @@
 //! ([`crate::segment::border_split`]).
 
 use crate::camera::{axpy, dot, normalize, sub, Camera, Vec3};
-use crate::config::{ForegroundRule, KeepRegions, MaskConfig, MaskDepth};
+use crate::config::{ForegroundRule, KeepRegions, LogitSource, MaskConfig, MaskDepth};
 use crate::error::{ConfigError, RunError};
 use crate::image::{GrayImage, RgbImage};
 use crate::kmeans::{kmeans, KMeansConfig, KMeansResult};
@@ -73,7 +73,8 @@ pub struct RenderedLogits {
     pub points: Vec<Option<Vec3>>,
 }
 
-/// Renders the colour, depth and segmentation logits of a whole view.
+/// Renders the colour, depth and segmentation logits of a whole view (`masks.logits` says how
+/// the logits are formed).
 pub fn render_logits(session: &Session, head: &SegHead, camera: &Camera) -> RenderedLogits {
     let field = session.field.as_ref();
     let d = head.outputs();
@@ -84,13 +85,14 @@ pub fn render_logits(session: &Session, head: &SegHead, camera: &Camera) -> Rend
     // ray instead of every candidate; the colour still composites every sample.
     let min_weight = session.config.masks.head_min_weight.unwrap_or(session.config.segment.weight_threshold);
     let extra = ExtraChannels { dim: d, min_weight, eval: &eval };
-    let (colours, logits) = render_inference(
+    let composited = session.config.masks.logits == LogitSource::Composited;
+    let (colours, composited_logits) = render_inference(
         field,
         session.render_context(),
         &rays,
         session.render_options(false),
         session.config.render.chunk,
-        Some(&extra),
+        composited.then_some(&extra),
     );
     let mut rgb = RgbImage::new(camera.width as usize, camera.height as usize);
     let mut depth = Vec::with_capacity(colours.len());
@@ -104,7 +106,33 @@ pub fn render_logits(session: &Session, head: &SegHead, camera: &Camera) -> Rend
         depth.push(d);
         points.push(is_hit(d).then(|| axpy(rays.origins[i], d, rays.directions[i])));
     }
+    let logits = if composited {
+        composited_logits
+    } else {
+        let opacities: Vec<f32> = colours.iter().map(|c| c.acc).collect();
+        surface_logits(&points, &opacities, d, &eval)
+    };
     RenderedLogits { rgb, depth, logits, channels: d, points }
+}
+
+/// `[n, d]` logits of `masks.logits = "surface"`: `eval` (the head) at each pixel's point times
+/// the ray's opacity, zero for empty rays.
+fn surface_logits(
+    points: &[Option<Vec3>],
+    opacities: &[f32],
+    d: usize,
+    eval: &dyn Fn(&[Vec3]) -> Vec<f32>,
+) -> Vec<f32> {
+    let hits: Vec<usize> = (0..points.len()).filter(|&i| points[i].is_some()).collect();
+    let positions: Vec<Vec3> = hits.iter().filter_map(|&i| points[i]).collect();
+    let values = eval(&positions);
+    let mut logits = vec![0.0; points.len() * d];
+    for (&i, value) in hits.iter().zip(values.chunks_exact(d)) {
+        for (out, v) in logits[i * d..(i + 1) * d].iter_mut().zip(value) {
+            *out = opacities[i] * v;
+        }
+    }
+    logits
 }
 
 /// Per-row softmax of `[n, d]` values (numerically stable).
