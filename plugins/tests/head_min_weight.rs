@@ -1,12 +1,12 @@
-//! `masks.head_min_weight`: a rendered view's logits leave out the samples at or below it;
-//! unset, the view uses the samples stage 2 trained the head on.
+//! `masks.head_min_weight`: a rendered view's composited logits leave out the samples at or
+//! below it; unset, the view uses the samples stage 2 trained the head on.
 
 mod common;
 
 use std::path::Path;
 
 use common::tiny_session;
-use sos_core::config::RunConfig;
+use sos_core::config::{LogitSource, RunConfig};
 use sos_core::segment::infer::render_logits;
 use sos_core::segment::train::{train_segmentation, Segmenter};
 use sos_core::train::photometric::train_photometric;
@@ -16,6 +16,8 @@ use sos_plugins as _;
 #[test]
 fn head_min_weight_leaves_out_light_samples_and_defaults_to_the_training_threshold() {
     let mut s = tiny_session("voxel-grid", "object-centric", "", 40, "head-min-weight");
+    // The threshold leaves samples out of composited logits only.
+    s.config.segment.logits = LogitSource::Composited;
     train_photometric(&mut s).unwrap();
     let mut seg = Segmenter::build(&s).unwrap();
     train_segmentation(&mut s, &mut seg).unwrap();

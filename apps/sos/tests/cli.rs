@@ -251,7 +251,7 @@ fn ablations_run_from_config_alone() {
     // Appearance-only loss list and joint training (photometric weight > 0, trainable field).
     let dir = temp_dir("ablation");
     let config = format!(
-        "{}photometric_weight = 1.0\n\n[[loss]]\nkind = \"appearance\"\nweight = 1.0\n",
+        "{}photometric_weight = 1.0\nlogits = \"composited\"\n\n[[loss]]\nkind = \"appearance\"\nweight = 1.0\n",
         tiny_config("ablation", 30, 4)
     );
     std::fs::write(dir.join("ablation.toml"), config).unwrap();

@@ -85,7 +85,8 @@ pub fn render_logits(session: &Session, head: &SegHead, camera: &Camera) -> Rend
     // ray instead of every candidate; the colour still composites every sample.
     let min_weight = session.config.masks.head_min_weight.unwrap_or(session.config.segment.weight_threshold);
     let extra = ExtraChannels { dim: d, min_weight, eval: &eval };
-    let composited = session.config.masks.logits == LogitSource::Composited;
+    let source = session.config.masks.logits.unwrap_or(session.config.segment.logits);
+    let composited = source == LogitSource::Composited;
     let (colours, composited_logits) = render_inference(
         field,
         session.render_context(),

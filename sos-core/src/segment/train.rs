@@ -5,7 +5,8 @@ use std::time::Instant;
 
 use rand::SeedableRng;
 
-use crate::config::LossEntry;
+use crate::camera::{axpy, Vec3};
+use crate::config::{LogitSource, LossEntry};
 use crate::error::RunError;
 use crate::image::RgbImage;
 use crate::plugin::{ContrastiveLoss, FeatureMap, PairMiner, PatchBatch};
@@ -187,7 +188,9 @@ pub fn train_segmentation_observed(
         }
         let timer = Instant::now();
         let rays = patch_rays(&session.scene, &patches);
-        let mut r = seg.frozen.render(session, &rays, joint, true, &mut rng);
+        // Only composited logits read the segmentation input at every sample.
+        let keep_seg_input = cfg.logits == LogitSource::Composited;
+        let mut r = seg.frozen.render(session, &rays, joint, keep_seg_input, &mut rng);
         let t_field = timer.elapsed().as_secs_f64();
         let out = composite(session, seg, &r, &rays, layout);
         let t_render = timer.elapsed().as_secs_f64();
@@ -220,7 +223,7 @@ pub fn train_segmentation_observed(
             continue;
         }
         bad_steps = 0;
-        let ray_grad = backward(session, seg, &r, layout, &grad_logits);
+        let ray_grad = backward(session, seg, &r, &out, layout, &grad_logits);
         let lr_factor = cfg.final_lr_factor.powf(seg.step as f32 / cfg.steps.max(1) as f32);
         seg.head.step(lr_factor);
         stats.timing = Stage2Timing {
@@ -309,8 +312,11 @@ impl PatchLayout {
 
 /// What the losses see of a step's render.
 struct Composited {
-    /// The head's logits at every surviving sample, `[samples, d_seg]`.
+    /// The head's logits at every surviving sample, `[samples, d_seg]` (with
+    /// `segment.logits = "composited"`; at the surface points otherwise).
     sample_logits: Vec<f32>,
+    /// With `segment.logits = "surface"`: where the head ran, one point per ray that hit.
+    surface: Option<SurfacePoints>,
     /// Composited logits in the losses' layout, `[patch, d_seg, pixel]`.
     logits: Vec<f32>,
     /// Each ray's rendered 3D point (empty rays at the batch's farthest depth),
@@ -320,13 +326,70 @@ struct Composited {
     images: Vec<RgbImage>,
 }
 
+/// One head evaluation per ray, at the ray's visible surface (`segment.logits = "surface"`).
+struct SurfacePoints {
+    /// The rays that hit something.
+    rays: Vec<usize>,
+    /// Their surface points (at the median depth).
+    positions: Vec<Vec3>,
+    /// Their opacities, which scale the head's logits as compositing would.
+    opacities: Vec<f32>,
+}
+
+impl SurfacePoints {
+    fn of(r: &Rendered, rays: &RayBatch) -> SurfacePoints {
+        let hits: Vec<usize> = (0..rays.len()).filter(|&i| is_hit(r.colours[i].median_depth)).collect();
+        SurfacePoints {
+            positions: hits
+                .iter()
+                .map(|&i| axpy(rays.origins[i], r.colours[i].median_depth, rays.directions[i]))
+                .collect(),
+            opacities: hits.iter().map(|&i| r.colours[i].acc).collect(),
+            rays: hits,
+        }
+    }
+
+    /// `[n_rays, d]` logits: each hit ray's opacity times the head's logits at its point.
+    fn ray_logits(&self, values: &[f32], n_rays: usize, d: usize) -> Vec<f32> {
+        let mut out = vec![0.0; n_rays * d];
+        for ((&ray, &opacity), value) in self.rays.iter().zip(&self.opacities).zip(values.chunks_exact(d)) {
+            for (o, v) in out[ray * d..(ray + 1) * d].iter_mut().zip(value) {
+                *o = opacity * v;
+            }
+        }
+        out
+    }
+
+    /// The gradient at each point from that of its ray's logits.
+    fn point_grads(&self, ray_grad: &[f32], d: usize) -> Vec<f32> {
+        let mut out = Vec::with_capacity(self.rays.len() * d);
+        for (&ray, &opacity) in self.rays.iter().zip(&self.opacities) {
+            out.extend(ray_grad[ray * d..(ray + 1) * d].iter().map(|g| opacity * g));
+        }
+        out
+    }
+}
+
 /// The head on the surviving samples, its logits composited with the field's weights (as
-/// inference composites them), and the rendered depth's points and colours.
+/// inference composites them), or once per ray at its surface (`segment.logits`), and the
+/// rendered depth's points and colours.
 fn composite(session: &Session, seg: &mut Segmenter, r: &Rendered, rays: &RayBatch, layout: PatchLayout) -> Composited {
     let d_seg = seg.head.outputs();
-    let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
-    let sample_logits = seg.frozen.head_forward(session, &seg.head, head_samples);
-    let logits = layout.to_patches(&r.composite_values(&sample_logits, d_seg, |_| true), d_seg);
+    let (sample_logits, ray_logits, surface) = match session.config.segment.logits {
+        LogitSource::Composited => {
+            let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
+            let sample_logits = seg.frozen.head_forward(session, &seg.head, head_samples);
+            let ray_logits = r.composite_values(&sample_logits, d_seg, |_| true);
+            (sample_logits, ray_logits, None)
+        }
+        LogitSource::Surface => {
+            let surface = SurfacePoints::of(r, rays);
+            let values = seg.frozen.head_forward(session, &seg.head, HeadSamples::at(&surface.positions));
+            let ray_logits = surface.ray_logits(&values, rays.len(), d_seg);
+            (values, ray_logits, Some(surface))
+        }
+    };
+    let logits = layout.to_patches(&ray_logits, d_seg);
     let mut depth: Vec<f32> = r.colours.iter().map(|c| c.depth).collect();
     fill_empty_depths(&mut depth);
     let ray_points: Vec<f32> = (0..rays.len())
@@ -338,7 +401,7 @@ fn composite(session: &Session, seg: &mut Segmenter, r: &Rendered, rays: &RayBat
         .collect();
     let points = layout.to_patches(&ray_points, 3);
     let images = patch_images(&r.colours, layout.side);
-    Composited { sample_logits, logits, points, images }
+    Composited { sample_logits, surface, logits, points, images }
 }
 
 /// Negative pairs from the teacher's global vectors, then every loss term: the weighted total,
@@ -378,14 +441,23 @@ fn backward(
     session: &Session,
     seg: &mut Segmenter,
     r: &Rendered,
+    out: &Composited,
     layout: PatchLayout,
     grad_logits: &[f32],
 ) -> Vec<f32> {
     let d_seg = seg.head.outputs();
     let ray_grad = layout.to_rays(grad_logits, d_seg);
-    let grad_sample = r.composite_values_backward(&ray_grad, d_seg);
-    let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
-    seg.frozen.head_backward(session, &mut seg.head, head_samples, &grad_sample);
+    match &out.surface {
+        None => {
+            let grad_sample = r.composite_values_backward(&ray_grad, d_seg);
+            let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
+            seg.frozen.head_backward(session, &mut seg.head, head_samples, &grad_sample);
+        }
+        Some(surface) => {
+            let grad_point = surface.point_grads(&ray_grad, d_seg);
+            seg.frozen.head_backward(session, &mut seg.head, HeadSamples::at(&surface.positions), &grad_point);
+        }
+    }
     ray_grad
 }
 
@@ -474,6 +546,22 @@ mod tests {
         assert_eq!(patches[(2 + 1) * 4 + 2], 61.0);
         assert_eq!(patches[..4], [0.0, 10.0, 20.0, 30.0]);
         assert_eq!(layout.to_rays(&patches, 2), rays);
+    }
+
+    #[test]
+    fn surface_logits_scale_by_opacity_and_their_gradient_is_the_transpose() {
+        // Rays 0 and 2 of 4 hit, with opacities 0.5 and 0.75 (products exact in f32); two
+        // channels.
+        let surface = SurfacePoints { rays: vec![0, 2], positions: vec![[0.0; 3]; 2], opacities: vec![0.5, 0.75] };
+        let values = [1.0, -2.0, 3.0, 4.0];
+        let logits = surface.ray_logits(&values, 4, 2);
+        assert_eq!(logits, [0.5, -1.0, 0.0, 0.0, 2.25, 3.0, 0.0, 0.0]);
+        // ⟨ray_logits(v), g⟩ = ⟨v, point_grads(g)⟩ for any v and g: the backward is exact.
+        let g = [0.3, -0.7, 5.0, 5.0, 1.1, 0.2, -9.0, 2.0];
+        let point_grads = surface.point_grads(&g, 2);
+        let forward: f32 = logits.iter().zip(&g).map(|(a, b)| a * b).sum();
+        let backward: f32 = values.iter().zip(&point_grads).map(|(a, b)| a * b).sum();
+        assert!((forward - backward).abs() < 1e-5, "{forward} against {backward}");
     }
 
     #[test]
