@@ -42,6 +42,7 @@ use crate::segment::diagnostics::{evidence_image, MaskEvidence};
 use crate::segment::head::SegHead;
 use crate::segment::head_pass;
 use crate::segment::support_plane::{PlaneCandidates, ViewPoints};
+use crate::segment::surface::SurfacePoints;
 use crate::train::session::Session;
 
 /// Largest angle (degrees) between a training camera's axis and the mean axis for which the
@@ -111,29 +112,10 @@ pub fn render_logits(session: &Session, head: &SegHead, camera: &Camera) -> Rend
         composited_logits
     } else {
         let opacities: Vec<f32> = colours.iter().map(|c| c.acc).collect();
-        surface_logits(&points, &opacities, d, &eval)
+        let surface = SurfacePoints::new(&points, &opacities);
+        surface.ray_logits(&eval(surface.positions()), points.len(), d)
     };
     RenderedLogits { rgb, depth, logits, channels: d, points }
-}
-
-/// `[n, d]` logits of `masks.logits = "surface"`: `eval` (the head) at each pixel's point times
-/// the ray's opacity, zero for empty rays.
-fn surface_logits(
-    points: &[Option<Vec3>],
-    opacities: &[f32],
-    d: usize,
-    eval: &dyn Fn(&[Vec3]) -> Vec<f32>,
-) -> Vec<f32> {
-    let hits: Vec<usize> = (0..points.len()).filter(|&i| points[i].is_some()).collect();
-    let positions: Vec<Vec3> = hits.iter().filter_map(|&i| points[i]).collect();
-    let values = eval(&positions);
-    let mut logits = vec![0.0; points.len() * d];
-    for (&i, value) in hits.iter().zip(values.chunks_exact(d)) {
-        for (out, v) in logits[i * d..(i + 1) * d].iter_mut().zip(value) {
-            *out = opacities[i] * v;
-        }
-    }
-    logits
 }
 
 /// Per-row softmax of `[n, d]` values (numerically stable).

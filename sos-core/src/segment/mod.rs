@@ -14,5 +14,6 @@ pub mod patches;
 pub mod stability;
 pub mod store;
 pub mod support_plane;
+pub mod surface;
 pub mod teacher;
 pub mod train;

@@ -19,6 +19,7 @@ use crate::segment::head::SegHead;
 use crate::segment::head_pass::HeadSamples;
 use crate::segment::patches::{patch_rays, Patch, PatchSampler};
 use crate::segment::stability::MaskStability;
+use crate::segment::surface::SurfacePoints;
 use crate::segment::teacher::{captured_patch, Teacher};
 use crate::train::observer::{Severity, Stage, TrainObserver, Unobserved};
 use crate::train::session::{kind_of, Session};
@@ -326,50 +327,6 @@ struct Composited {
     images: Vec<RgbImage>,
 }
 
-/// One head evaluation per ray, at the ray's visible surface (`segment.logits = "surface"`).
-struct SurfacePoints {
-    /// The rays that hit something.
-    rays: Vec<usize>,
-    /// Their surface points (at the median depth).
-    positions: Vec<Vec3>,
-    /// Their opacities, which scale the head's logits as compositing would.
-    opacities: Vec<f32>,
-}
-
-impl SurfacePoints {
-    fn of(r: &Rendered, rays: &RayBatch) -> SurfacePoints {
-        let hits: Vec<usize> = (0..rays.len()).filter(|&i| is_hit(r.colours[i].median_depth)).collect();
-        SurfacePoints {
-            positions: hits
-                .iter()
-                .map(|&i| axpy(rays.origins[i], r.colours[i].median_depth, rays.directions[i]))
-                .collect(),
-            opacities: hits.iter().map(|&i| r.colours[i].acc).collect(),
-            rays: hits,
-        }
-    }
-
-    /// `[n_rays, d]` logits: each hit ray's opacity times the head's logits at its point.
-    fn ray_logits(&self, values: &[f32], n_rays: usize, d: usize) -> Vec<f32> {
-        let mut out = vec![0.0; n_rays * d];
-        for ((&ray, &opacity), value) in self.rays.iter().zip(&self.opacities).zip(values.chunks_exact(d)) {
-            for (o, v) in out[ray * d..(ray + 1) * d].iter_mut().zip(value) {
-                *o = opacity * v;
-            }
-        }
-        out
-    }
-
-    /// The gradient at each point from that of its ray's logits.
-    fn point_grads(&self, ray_grad: &[f32], d: usize) -> Vec<f32> {
-        let mut out = Vec::with_capacity(self.rays.len() * d);
-        for (&ray, &opacity) in self.rays.iter().zip(&self.opacities) {
-            out.extend(ray_grad[ray * d..(ray + 1) * d].iter().map(|g| opacity * g));
-        }
-        out
-    }
-}
-
 /// The head on the surviving samples, its logits composited with the field's weights (as
 /// inference composites them), or once per ray at its surface (`segment.logits`), and the
 /// rendered depth's points and colours.
@@ -383,8 +340,15 @@ fn composite(session: &Session, seg: &mut Segmenter, r: &Rendered, rays: &RayBat
             (sample_logits, ray_logits, None)
         }
         LogitSource::Surface => {
-            let surface = SurfacePoints::of(r, rays);
-            let values = seg.frozen.head_forward(session, &seg.head, HeadSamples::at(&surface.positions));
+            let points: Vec<Option<Vec3>> = (0..rays.len())
+                .map(|i| {
+                    let t = r.colours[i].median_depth;
+                    is_hit(t).then(|| axpy(rays.origins[i], t, rays.directions[i]))
+                })
+                .collect();
+            let opacities: Vec<f32> = r.colours.iter().map(|c| c.acc).collect();
+            let surface = SurfacePoints::new(&points, &opacities);
+            let values = seg.frozen.head_forward(session, &seg.head, HeadSamples::at(surface.positions()));
             let ray_logits = surface.ray_logits(&values, rays.len(), d_seg);
             (values, ray_logits, Some(surface))
         }
@@ -455,7 +419,7 @@ fn backward(
         }
         Some(surface) => {
             let grad_point = surface.point_grads(&ray_grad, d_seg);
-            seg.frozen.head_backward(session, &mut seg.head, HeadSamples::at(&surface.positions), &grad_point);
+            seg.frozen.head_backward(session, &mut seg.head, HeadSamples::at(surface.positions()), &grad_point);
         }
     }
     ray_grad
@@ -546,22 +510,6 @@ mod tests {
         assert_eq!(patches[(2 + 1) * 4 + 2], 61.0);
         assert_eq!(patches[..4], [0.0, 10.0, 20.0, 30.0]);
         assert_eq!(layout.to_rays(&patches, 2), rays);
-    }
-
-    #[test]
-    fn surface_logits_scale_by_opacity_and_their_gradient_is_the_transpose() {
-        // Rays 0 and 2 of 4 hit, with opacities 0.5 and 0.75 (products exact in f32); two
-        // channels.
-        let surface = SurfacePoints { rays: vec![0, 2], positions: vec![[0.0; 3]; 2], opacities: vec![0.5, 0.75] };
-        let values = [1.0, -2.0, 3.0, 4.0];
-        let logits = surface.ray_logits(&values, 4, 2);
-        assert_eq!(logits, [0.5, -1.0, 0.0, 0.0, 2.25, 3.0, 0.0, 0.0]);
-        // ⟨ray_logits(v), g⟩ = ⟨v, point_grads(g)⟩ for any v and g: the backward is exact.
-        let g = [0.3, -0.7, 5.0, 5.0, 1.1, 0.2, -9.0, 2.0];
-        let point_grads = surface.point_grads(&g, 2);
-        let forward: f32 = logits.iter().zip(&g).map(|(a, b)| a * b).sum();
-        let backward: f32 = values.iter().zip(&point_grads).map(|(a, b)| a * b).sum();
-        assert!((forward - backward).abs() < 1e-5, "{forward} against {backward}");
     }
 
     #[test]
