@@ -5,22 +5,16 @@ mod common;
 
 use std::path::Path;
 
-use common::tiny_session;
+use common::two_stage_session;
 use sos_core::config::{LogitSource, RunConfig};
 use sos_core::segment::infer::render_logits;
-use sos_core::segment::train::{train_segmentation, Segmenter};
-use sos_core::train::photometric::train_photometric;
 // Links every plugin so the config kinds resolve.
 use sos_plugins as _;
 
 #[test]
 fn head_min_weight_leaves_out_light_samples_and_defaults_to_the_training_threshold() {
-    let mut s = tiny_session("voxel-grid", "object-centric", "", 40, "head-min-weight");
     // The threshold leaves samples out of composited logits only.
-    s.config.segment.logits = LogitSource::Composited;
-    train_photometric(&mut s).unwrap();
-    let mut seg = Segmenter::build(&s).unwrap();
-    train_segmentation(&mut s, &mut seg).unwrap();
+    let (mut s, seg) = two_stage_session("head-min-weight", LogitSource::Composited);
     let camera = s.scene.views[s.scene.test[0]].camera.clone();
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
 

@@ -6,7 +6,7 @@ mod common;
 
 use std::path::Path;
 
-use common::tiny_session;
+use common::{tiny_session, two_stage_session};
 use sos_core::config::{LogitSource, RunConfig};
 use sos_core::render::rays::RayBatch;
 use sos_core::render::renderer::render_inference;
@@ -19,11 +19,7 @@ use sos_plugins as _;
 
 #[test]
 fn surface_logits_are_the_head_at_each_pixels_point_times_its_opacity() {
-    let mut s = tiny_session("voxel-grid", "object-centric", "", 40, "surface-logits");
-    s.config.segment.logits = LogitSource::Composited;
-    train_photometric(&mut s).unwrap();
-    let mut seg = Segmenter::build(&s).unwrap();
-    train_segmentation(&mut s, &mut seg).unwrap();
+    let (mut s, seg) = two_stage_session("surface-logits", LogitSource::Composited);
     let camera = s.scene.views[s.scene.test[0]].camera.clone();
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
 

@@ -3,7 +3,9 @@
 
 use std::path::Path;
 
-use sos_core::config::RunConfig;
+use sos_core::config::{LogitSource, RunConfig};
+use sos_core::segment::train::{train_segmentation, Segmenter};
+use sos_core::train::photometric::train_photometric;
 use sos_core::train::Session;
 
 /// A session of `field` on the `rig` camera rig with the extra `[field]` lines `field_keys`,
@@ -47,4 +49,16 @@ pub fn scratch_dir(name: &str) -> std::path::PathBuf {
     std::fs::remove_dir_all(&dir).ok();
     std::fs::create_dir_all(&dir).unwrap();
     dir
+}
+
+/// A tiny voxel-grid session on the object-centric rig, trained through stage 1 (40 steps) and
+/// stage 2 with `logits`; its run folder is unique to `tag`.
+#[allow(dead_code)] // Not every test file trains both stages.
+pub fn two_stage_session(tag: &str, logits: LogitSource) -> (Session, Segmenter) {
+    let mut s = tiny_session("voxel-grid", "object-centric", "", 40, tag);
+    s.config.segment.logits = logits;
+    train_photometric(&mut s).unwrap();
+    let mut seg = Segmenter::build(&s).unwrap();
+    train_segmentation(&mut s, &mut seg).unwrap();
+    (s, seg)
 }
