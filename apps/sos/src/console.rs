@@ -147,7 +147,7 @@ impl TrainObserver for Console {
         }
         let per_step = self.seconds_per_step(step);
         self.bar.set_message(format!(
-            "loss {:+.4}  {:.1} s/step  {:.0} head samples/ray  cache {}/{}",
+            "loss {:+.4}  {:.1} s/step  {:.1} head samples/ray  cache {}/{}",
             stats.total,
             per_step,
             stats.samples_per_ray,
@@ -158,7 +158,7 @@ impl TrainObserver for Console {
         if self.logs(step) || (!self.show_bars && stats.mask_change.is_some()) {
             let change = stats.mask_change.map(|c| format!(", masks changed {:.2}%", 100.0 * c)).unwrap_or_default();
             eprintln!(
-                "stage 2 step {}/{}: loss {:+.5}, {:.2} s/step, {:.0} head samples/ray{change}, {:.0} s",
+                "stage 2 step {}/{}: loss {:+.5}, {:.2} s/step, {:.1} head samples/ray{change}, {:.0} s",
                 step,
                 self.total,
                 stats.total,

@@ -7,6 +7,9 @@
 //! - the field's segmentation input at the kept samples, so the head needs no field pass;
 //! - the head's forward tapes, so its backward pass does not run it again.
 //!
+//! Stage 2 with the head at the surface keeps no segmentation input; its cache of rendered
+//! patch rays takes that share instead.
+//!
 //! The split follows what a stage-2 step of the reference-sized NeRF fills when nothing is
 //! recomputed (state and input about equal) and leaves the tapes room for the worst case, a
 //! copy of the input beside their bfloat16 hidden layer when the input was not kept (up to
@@ -51,6 +54,12 @@ impl MemoryBudget {
     /// Bytes for the segmentation input a frozen render keeps.
     pub fn seg_input(&self) -> usize {
         self.total / 7 * 2
+    }
+
+    /// Bytes for stage 2's cache of rendered patch rays: the segmentation input's share, which
+    /// a stage 2 that caches rays (the head at the surface) does not keep.
+    pub fn ray_cache(&self) -> usize {
+        self.seg_input()
     }
 
     /// Bytes for the head's forward tapes.

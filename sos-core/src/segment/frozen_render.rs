@@ -3,11 +3,13 @@
 
 use rand::Rng;
 
+use crate::render::composite::RayColour;
 use crate::render::memory_budget::MemoryBudget;
 use crate::render::rays::RayBatch;
-use crate::render::renderer::{render, render_with_seg_input, FrozenBuffers, Rendered};
+use crate::render::renderer::{render, render_with_seg_input, FrozenBuffers, RenderTiming, Rendered};
 use crate::segment::head::SegHead;
 use crate::segment::head_pass::{self, HeadSamples, HeadTapes};
+use crate::segment::ray_cache::{RayCache, RayKey};
 use crate::train::session::Session;
 
 /// The gigabytes a stage-2 step fills (the frozen render's state and segmentation input, the
@@ -18,12 +20,18 @@ pub struct FrozenRender {
     budget: MemoryBudget,
     buffers: FrozenBuffers,
     tapes: HeadTapes,
+    rays: RayCache,
 }
 
 impl FrozenRender {
     /// Empty buffers bounded by `budget`.
     pub fn new(budget: MemoryBudget) -> FrozenRender {
-        FrozenRender { budget, buffers: FrozenBuffers::default(), tapes: HeadTapes::with_budget(budget.head_tapes()) }
+        FrozenRender {
+            budget,
+            buffers: FrozenBuffers::default(),
+            tapes: HeadTapes::with_budget(budget.head_tapes()),
+            rays: RayCache::with_budget(budget.ray_cache()),
+        }
     }
 
     /// The budget the buffers are bounded by.
@@ -56,6 +64,43 @@ impl FrozenRender {
         };
         r.composite();
         r
+    }
+
+    /// Each ray's composited render by the frozen field, `keys` saying where the rays come from:
+    /// rays rendered by an earlier call are looked up, the rest rendered (and kept while the
+    /// budget allows). The results equal [`FrozenRender::render`]'s colours, ray for ray: the
+    /// render is not stratified, so a ray renders the same whenever it is rendered. Only for a
+    /// field that no longer changes; the timing is that of the rays rendered.
+    pub fn colours(
+        &mut self,
+        session: &Session,
+        rays: &RayBatch,
+        keys: &[RayKey],
+        rng: &mut impl Rng,
+    ) -> (Vec<RayColour>, RenderTiming) {
+        let cached = self.rays.lookup(keys);
+        let missing: Vec<usize> = (0..rays.len()).filter(|&i| cached[i].is_none()).collect();
+        if missing.is_empty() {
+            return (cached.into_iter().map(Option::unwrap_or_default).collect(), RenderTiming::default());
+        }
+        let misses = RayBatch {
+            origins: missing.iter().map(|&i| rays.origins[i]).collect(),
+            directions: missing.iter().map(|&i| rays.directions[i]).collect(),
+        };
+        let mut r = self.render(session, &misses, false, false, rng);
+        let mut colours: Vec<RayColour> = cached.into_iter().map(Option::unwrap_or_default).collect();
+        for (&i, &c) in missing.iter().zip(&r.colours) {
+            colours[i] = c;
+            self.rays.insert(keys[i], c);
+        }
+        let timing = r.timing;
+        self.recycle(&mut r);
+        (colours, timing)
+    }
+
+    /// Rays held by the cache of [`FrozenRender::colours`].
+    pub fn cached_rays(&self) -> usize {
+        self.rays.len()
     }
 
     /// The head's logits at the rendered samples, keeping its tapes when they fit.

@@ -11,6 +11,7 @@ pub mod head;
 pub mod head_pass;
 pub mod infer;
 pub mod patches;
+pub mod ray_cache;
 pub mod stability;
 pub mod store;
 pub mod support_plane;

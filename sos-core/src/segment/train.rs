@@ -18,6 +18,7 @@ use crate::segment::frozen_render::FrozenRender;
 use crate::segment::head::SegHead;
 use crate::segment::head_pass::HeadSamples;
 use crate::segment::patches::{patch_rays, Patch, PatchSampler};
+use crate::segment::ray_cache::patch_keys;
 use crate::segment::stability::MaskStability;
 use crate::segment::surface::SurfacePoints;
 use crate::segment::teacher::{captured_patch, Teacher};
@@ -189,19 +190,35 @@ pub fn train_segmentation_observed(
         }
         let timer = Instant::now();
         let rays = patch_rays(&session.scene, &patches);
-        // Only composited logits read the segmentation input at every sample.
-        let keep_seg_input = cfg.logits == LogitSource::Composited;
-        let mut r = seg.frozen.render(session, &rays, joint, keep_seg_input, &mut rng);
+        let mut r = match cfg.logits {
+            // Only composited logits (and joint training, which needs them) use the samples:
+            // they read the segmentation input at each one.
+            LogitSource::Composited => {
+                StepRender::Samples(Box::new(seg.frozen.render(session, &rays, joint, true, &mut rng)))
+            }
+            // The head at the surface needs each ray's composited render alone, and the field
+            // is frozen (joint training with surface logits is refused): rays that recur are
+            // looked up rather than rendered again.
+            LogitSource::Surface => {
+                let (colours, timing) = seg.frozen.colours(session, &rays, &patch_keys(&patches), &mut rng);
+                StepRender::Rays { colours, timing }
+            }
+        };
         let t_field = timer.elapsed().as_secs_f64();
         let out = composite(session, seg, &r, &rays, layout);
         let t_render = timer.elapsed().as_secs_f64();
         let features = seg.teacher.features(&session.scene, &patches, &out.images, !joint)?;
         let t_teacher = timer.elapsed().as_secs_f64();
         let (mut stats, grad_logits) = losses(seg, &out, &features, layout, &mut rng);
-        stats.samples_per_ray = r.samples.len() as f64 / rays.len() as f64;
+        let head_evaluations = match (&r, &out.surface) {
+            (_, Some(surface)) => surface.positions().len(),
+            (StepRender::Samples(r), None) => r.samples.len(),
+            (StepRender::Rays { .. }, None) => 0,
+        };
+        stats.samples_per_ray = head_evaluations as f64 / rays.len() as f64;
         let targets = joint.then(|| captured_targets(session, &patches));
         if let Some(targets) = &targets {
-            let photometric = patch_mse(&r.colours, targets);
+            let photometric = patch_mse(r.colours(), targets);
             stats.total += cfg.photometric_weight as f64 * photometric;
             stats.terms.push(("photometric".into(), photometric));
         }
@@ -219,7 +236,7 @@ pub fn train_segmentation_observed(
             if bad_steps >= MAX_BAD_STEPS {
                 return Err(RunError::Diverged(format!("{MAX_BAD_STEPS} non-finite stage-2 steps in a row")));
             }
-            seg.frozen.recycle(&mut r);
+            r.recycle(&mut seg.frozen);
             seg.step += 1;
             continue;
         }
@@ -228,18 +245,18 @@ pub fn train_segmentation_observed(
         let lr_factor = cfg.final_lr_factor.powf(seg.step as f32 / cfg.steps.max(1) as f32);
         seg.head.step(lr_factor);
         stats.timing = Stage2Timing {
-            render: r.timing,
+            render: r.timing(),
             field: t_field,
             head: t_render - t_field,
             teacher: t_teacher - t_render,
             losses: t_losses - t_teacher,
             backward: timer.elapsed().as_secs_f64() - t_losses,
         };
-        if let Some(targets) = &targets {
+        if let (Some(targets), StepRender::Samples(rendered)) = (&targets, &mut r) {
             let joint = JointStep { weight: cfg.photometric_weight, targets, lr_factor };
-            joint.step(session, &mut r, &out.sample_logits, &ray_grad);
+            joint.step(session, rendered, &out.sample_logits, &ray_grad);
         }
-        seg.frozen.recycle(&mut r);
+        r.recycle(&mut seg.frozen);
         seg.step += 1;
         last = stats;
         let settled = match &mut stability {
@@ -311,6 +328,42 @@ impl PatchLayout {
     }
 }
 
+/// What a stage-2 step rendered of its rays.
+enum StepRender {
+    /// Every kept sample, composited: for composited logits, which read the samples.
+    Samples(Box<Rendered>),
+    /// Each ray's composited result alone (cached from step to step): for logits at the surface.
+    Rays {
+        /// The rays' composited values.
+        colours: Vec<RayColour>,
+        /// The render of the rays no earlier step had rendered.
+        timing: RenderTiming,
+    },
+}
+
+impl StepRender {
+    fn colours(&self) -> &[RayColour] {
+        match self {
+            StepRender::Samples(r) => &r.colours,
+            StepRender::Rays { colours, .. } => colours,
+        }
+    }
+
+    fn timing(&self) -> RenderTiming {
+        match self {
+            StepRender::Samples(r) => r.timing,
+            StepRender::Rays { timing, .. } => *timing,
+        }
+    }
+
+    /// Hands a full render's buffers back for the next step.
+    fn recycle(&mut self, frozen: &mut FrozenRender) {
+        if let StepRender::Samples(r) = self {
+            frozen.recycle(r);
+        }
+    }
+}
+
 /// What the losses see of a step's render.
 struct Composited {
     /// The head's logits at every surviving sample, `[samples, d_seg]` (with
@@ -330,23 +383,30 @@ struct Composited {
 /// The head on the surviving samples, its logits composited with the field's weights (as
 /// inference composites them), or once per ray at its surface (`segment.logits`), and the
 /// rendered depth's points and colours.
-fn composite(session: &Session, seg: &mut Segmenter, r: &Rendered, rays: &RayBatch, layout: PatchLayout) -> Composited {
+fn composite(
+    session: &Session,
+    seg: &mut Segmenter,
+    r: &StepRender,
+    rays: &RayBatch,
+    layout: PatchLayout,
+) -> Composited {
     let d_seg = seg.head.outputs();
-    let (sample_logits, ray_logits, surface) = match session.config.segment.logits {
-        LogitSource::Composited => {
+    let colours = r.colours();
+    let (sample_logits, ray_logits, surface) = match r {
+        StepRender::Samples(r) => {
             let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
             let sample_logits = seg.frozen.head_forward(session, &seg.head, head_samples);
             let ray_logits = r.composite_values(&sample_logits, d_seg, |_| true);
             (sample_logits, ray_logits, None)
         }
-        LogitSource::Surface => {
+        StepRender::Rays { .. } => {
             let points: Vec<Option<Vec3>> = (0..rays.len())
                 .map(|i| {
-                    let t = r.colours[i].median_depth;
+                    let t = colours[i].median_depth;
                     is_hit(t).then(|| axpy(rays.origins[i], t, rays.directions[i]))
                 })
                 .collect();
-            let opacities: Vec<f32> = r.colours.iter().map(|c| c.acc).collect();
+            let opacities: Vec<f32> = colours.iter().map(|c| c.acc).collect();
             let surface = SurfacePoints::new(&points, &opacities);
             let values = seg.frozen.head_forward(session, &seg.head, HeadSamples::at(surface.positions()));
             let ray_logits = surface.ray_logits(&values, rays.len(), d_seg);
@@ -354,7 +414,7 @@ fn composite(session: &Session, seg: &mut Segmenter, r: &Rendered, rays: &RayBat
         }
     };
     let logits = layout.to_patches(&ray_logits, d_seg);
-    let mut depth: Vec<f32> = r.colours.iter().map(|c| c.depth).collect();
+    let mut depth: Vec<f32> = colours.iter().map(|c| c.depth).collect();
     fill_empty_depths(&mut depth);
     let ray_points: Vec<f32> = (0..rays.len())
         .flat_map(|ray| {
@@ -364,7 +424,7 @@ fn composite(session: &Session, seg: &mut Segmenter, r: &Rendered, rays: &RayBat
         })
         .collect();
     let points = layout.to_patches(&ray_points, 3);
-    let images = patch_images(&r.colours, layout.side);
+    let images = patch_images(colours, layout.side);
     Composited { sample_logits, surface, logits, points, images }
 }
 
@@ -404,23 +464,20 @@ fn losses(
 fn backward(
     session: &Session,
     seg: &mut Segmenter,
-    r: &Rendered,
+    r: &StepRender,
     out: &Composited,
     layout: PatchLayout,
     grad_logits: &[f32],
 ) -> Vec<f32> {
     let d_seg = seg.head.outputs();
     let ray_grad = layout.to_rays(grad_logits, d_seg);
-    match &out.surface {
-        None => {
-            let grad_sample = r.composite_values_backward(&ray_grad, d_seg);
-            let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
-            seg.frozen.head_backward(session, &mut seg.head, head_samples, &grad_sample);
-        }
-        Some(surface) => {
-            let grad_point = surface.point_grads(&ray_grad, d_seg);
-            seg.frozen.head_backward(session, &mut seg.head, HeadSamples::at(surface.positions()), &grad_point);
-        }
+    if let Some(surface) = &out.surface {
+        let grad_point = surface.point_grads(&ray_grad, d_seg);
+        seg.frozen.head_backward(session, &mut seg.head, HeadSamples::at(surface.positions()), &grad_point);
+    } else if let StepRender::Samples(r) = r {
+        let grad_sample = r.composite_values_backward(&ray_grad, d_seg);
+        let head_samples = HeadSamples { positions: &r.samples.positions, seg_input: &r.seg_input };
+        seg.frozen.head_backward(session, &mut seg.head, head_samples, &grad_sample);
     }
     ray_grad
 }
