@@ -61,6 +61,46 @@ impl VoxelGridField {
         softplus(raw + self.shift) / self.voxel_length
     }
 
+    /// Density and colour of one chunk of samples, and with `tape` their corners and the
+    /// sigmoid of their raw density.
+    fn forward_chunk(
+        &self,
+        p: &[Vec3],
+        dirs: &[Vec3],
+        d: &mut [f32],
+        c: &mut [[f32; 3]],
+        mut tape: Option<(&mut [Option<Corners>], &mut [f32])>,
+    ) {
+        let n_sh = self.n_sh;
+        let mut feat = vec![0.0; self.grid.channels];
+        let mut basis = vec![0.0; n_sh];
+        for i in 0..p.len() {
+            let corners = self.corners(p[i]);
+            match corners {
+                Some(corners) => {
+                    self.grid.gather(&corners, &mut feat);
+                    d[i] = self.density_of(feat[0]);
+                    sh_basis(self.config.sh_degree, dirs[i], &mut basis);
+                    for k in 0..3 {
+                        let coef = &feat[1 + k * n_sh..1 + (k + 1) * n_sh];
+                        let x: f32 = coef.iter().zip(&basis).map(|(a, b)| a * b).sum();
+                        c[i][k] = sigmoid(x);
+                    }
+                    if let Some((_, sigmoids)) = tape.as_mut() {
+                        sigmoids[i] = sigmoid(feat[0] + self.shift);
+                    }
+                }
+                None => {
+                    d[i] = 0.0;
+                    c[i] = [0.0; 3];
+                }
+            }
+            if let Some((kept, _)) = tape.as_mut() {
+                kept[i] = corners;
+            }
+        }
+    }
+
     fn grow_to(&mut self, res: [usize; 3]) {
         self.grid = self.grid.resampled(res);
         // The moments of the old vertices mean nothing for the new ones: training starts
@@ -98,79 +138,77 @@ impl RadianceField for VoxelGridField {
         directions: &[Vec3],
         density: &mut [f32],
         rgb: &mut [[f32; 3]],
-        _record: bool,
+        record: bool,
     ) -> FieldTape {
-        let ch = self.grid.channels;
-        let n_sh = self.n_sh;
-        positions
+        let chunks = positions
             .par_chunks(CHUNK)
             .zip(directions.par_chunks(CHUNK))
-            .zip(density.par_chunks_mut(CHUNK).zip(rgb.par_chunks_mut(CHUNK)))
-            .for_each(|((p, dirs), (d, c))| {
-                let mut feat = vec![0.0; ch];
-                let mut basis = vec![0.0; n_sh];
-                for i in 0..p.len() {
-                    match self.corners(p[i]) {
-                        Some(corners) => {
-                            self.grid.gather(&corners, &mut feat);
-                            d[i] = self.density_of(feat[0]);
-                            sh_basis(self.config.sh_degree, dirs[i], &mut basis);
-                            for k in 0..3 {
-                                let coef = &feat[1 + k * n_sh..1 + (k + 1) * n_sh];
-                                let x: f32 = coef.iter().zip(&basis).map(|(a, b)| a * b).sum();
-                                c[i][k] = sigmoid(x);
-                            }
-                        }
-                        None => {
-                            d[i] = 0.0;
-                            c[i] = [0.0; 3];
-                        }
-                    }
-                }
-            });
-        // Everything the backward pass needs is cheaper to recompute than to store.
-        None
+            .zip(density.par_chunks_mut(CHUNK).zip(rgb.par_chunks_mut(CHUNK)));
+        if !record {
+            chunks.for_each(|((p, dirs), (d, c))| self.forward_chunk(p, dirs, d, c, None));
+            return None;
+        }
+        let mut tape = Tape::new(positions.len());
+        chunks.zip(tape.corners.par_chunks_mut(CHUNK).zip(tape.density_sigmoid.par_chunks_mut(CHUNK))).for_each(
+            |(((p, dirs), (d, c)), (corners, sigmoids))| self.forward_chunk(p, dirs, d, c, Some((corners, sigmoids))),
+        );
+        tape.colour.copy_from_slice(rgb);
+        Some(Box::new(tape))
     }
 
     fn backward(
         &mut self,
         positions: &[Vec3],
         directions: &[Vec3],
-        _tape: FieldTape,
+        tape: FieldTape,
         grad_density: &[f32],
         grad_rgb: &[[f32; 3]],
     ) {
         let ch = self.grid.channels;
         let n_sh = self.n_sh;
         let n = positions.len();
-        // Pass 1, parallel over samples: corners and the gradient of the interpolated channels.
-        let mut corners: Vec<Option<Corners>> = vec![None; n];
+        // Pass 1, parallel over samples: the gradient of the interpolated channels, from what
+        // the training forward pass kept (without its tape, or with another field's, that pass
+        // runs again).
+        let tape = tape.and_then(|t| t.downcast::<Tape>().ok()).filter(|t| t.corners.len() == n);
+        let Tape { corners, density_sigmoid, colour } = match tape {
+            Some(t) => *t,
+            None => {
+                let (mut d, mut c) = (vec![0.0; n], vec![[0.0; 3]; n]);
+                let tape = self.forward(positions, directions, &mut d, &mut c, true);
+                *tape.and_then(|t| t.downcast::<Tape>().ok()).expect("a recording forward pass returns its tape")
+            }
+        };
         let mut g = vec![0.0f32; n * ch];
-        corners.par_chunks_mut(CHUNK).zip(g.par_chunks_mut(CHUNK * ch)).enumerate().for_each(
-            |(chunk, (corners, g))| {
-                let mut feat = vec![0.0; ch];
+        let bounds: Vec<f32> = corners
+            .par_chunks(CHUNK)
+            .zip(g.par_chunks_mut(CHUNK * ch))
+            .enumerate()
+            .map(|(chunk, (corners, g))| {
                 let mut basis = vec![0.0; n_sh];
-                for (j, c) in corners.iter_mut().enumerate() {
+                // The largest |value| of the chunk, infinite for a NaN (see `Training::bound`).
+                let mut bound = 0.0f32;
+                for (j, c) in corners.iter().enumerate() {
                     let i = chunk * CHUNK + j;
-                    *c = self.corners(positions[i]);
-                    let Some(cs) = c else { continue };
-                    self.grid.gather(cs, &mut feat);
+                    if c.is_none() {
+                        continue;
+                    }
                     sh_basis(self.config.sh_degree, directions[i], &mut basis);
                     let gi = &mut g[j * ch..(j + 1) * ch];
                     // d softplus(x)/dx = sigmoid(x).
-                    gi[0] = grad_density[i] * sigmoid(feat[0] + self.shift) / self.voxel_length;
+                    gi[0] = grad_density[i] * density_sigmoid[i] / self.voxel_length;
                     for k in 0..3 {
-                        let coef = &feat[1 + k * n_sh..1 + (k + 1) * n_sh];
-                        let x: f32 = coef.iter().zip(&basis).map(|(a, b)| a * b).sum();
-                        let s = sigmoid(x);
+                        let s = colour[i][k];
                         let gx = grad_rgb[i][k] * s * (1.0 - s);
                         for l in 0..n_sh {
                             gi[1 + k * n_sh + l] = gx * basis[l];
                         }
                     }
+                    bound = gi.iter().fold(bound, |b, v| b.max(if v.is_nan() { f32::INFINITY } else { v.abs() }));
                 }
-            },
-        );
+                bound
+            })
+            .collect();
         // Pass 2, parallel over vertex ranges: each task owns a slab of vertices and scatters
         // only the corners that fall in it, so no two tasks write the same gradient.
         let n_vertices = self.grid.n_vertices();
@@ -216,6 +254,9 @@ impl RadianceField for VoxelGridField {
         for t in new_touched {
             training.touched.extend(t);
         }
+        // Each vertex sums at most 8 weighted (weight ≤ 1) values per sample.
+        let bound = bounds.iter().fold(0.0f32, |b, &v| b.max(v));
+        training.bound += 8.0 * n as f32 * bound;
     }
 
     fn step(&mut self, lr_factor: f32) {
@@ -225,12 +266,17 @@ impl RadianceField for VoxelGridField {
         let t = Training::of(&mut self.training, &self.grid);
         t.adam.step(&mut self.grid.data, &mut t.grads, &mut t.touched_flag, ch, &lr);
         t.touched.clear();
+        t.bound = 0.0;
     }
 
     fn gradients_finite(&self) -> bool {
         let ch = self.grid.channels;
         self.training.as_ref().is_none_or(|t| {
-            t.touched.iter().all(|&v| t.grads[v as usize * ch..(v as usize + 1) * ch].iter().all(|g| g.is_finite()))
+            // Below the bound no sum can have overflowed: nothing to scan.
+            t.bound < f32::MAX / 2.0
+                || t.touched
+                    .iter()
+                    .all(|&v| t.grads[v as usize * ch..(v as usize + 1) * ch].iter().all(|g| g.is_finite()))
         })
     }
 
@@ -243,6 +289,7 @@ impl RadianceField for VoxelGridField {
                 t.touched_flag[v] = false;
             }
             t.touched.clear();
+            t.bound = 0.0;
         }
     }
 
@@ -378,6 +425,25 @@ struct Training {
     adam: SparseAdam,
     touched: Vec<u32>,
     touched_flag: Vec<bool>,
+    /// An upper bound of every |gradient| accumulated since the last step (infinite or NaN
+    /// when a term was): while it stays far below `f32::MAX`, every gradient is finite.
+    bound: f32,
+}
+
+/// What a training forward pass keeps for the backward pass, per sample, so that it need not
+/// interpolate the grid again: the corners and the activations' values.
+struct Tape {
+    corners: Vec<Option<Corners>>,
+    /// `sigmoid(raw + shift)`, the slope of the density's softplus (0 outside the grid).
+    density_sigmoid: Vec<f32>,
+    /// The colour, the sigmoid of each channel's SH sum.
+    colour: Vec<[f32; 3]>,
+}
+
+impl Tape {
+    fn new(n: usize) -> Tape {
+        Tape { corners: vec![None; n], density_sigmoid: vec![0.0; n], colour: vec![[0.0; 3]; n] }
+    }
 }
 
 impl Training {
@@ -388,6 +454,7 @@ impl Training {
             adam: Training::fresh_adam(grid),
             touched: Vec::new(),
             touched_flag: vec![false; grid.n_vertices()],
+            bound: 0.0,
         })
     }
 
@@ -452,6 +519,7 @@ impl Regularized for VoxelGridField {
                     value += (lambda * d * d) as f64;
                     t.grads[n * ch + j] += 2.0 * lambda * d;
                     t.grads[v * ch + j] -= 2.0 * lambda * d;
+                    t.bound += 2.0 * (2.0 * lambda * d).abs();
                 }
             }
         }
@@ -511,6 +579,47 @@ mod tests {
             checked += 1;
         }
         assert!(checked > 50, "only {checked} parameters had gradients");
+    }
+
+    #[test]
+    fn the_forward_tape_gives_the_gradients_found_without_it() {
+        let positions = vec![[0.1, -0.3, 0.5], [-0.7, 0.2, 0.05], [3.0, 0.0, 0.0], [0.33, 0.61, -0.9]];
+        let directions = vec![[0.0, 0.6, 0.8], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.48, -0.6, 0.64]];
+        let gd = [0.7f32, -0.2, 0.5, 0.4];
+        let gc = [[0.3f32, -0.5, 0.9], [0.1, 0.2, -0.3], [1.0, 1.0, 1.0], [-0.6, 0.4, 0.25]];
+        let (mut taped, mut fresh) = (field(), field());
+        let (mut d, mut c) = (vec![0.0; 4], vec![[0.0; 3]; 4]);
+        let tape = taped.forward(&positions, &directions, &mut d, &mut c, true);
+        assert!(tape.is_some(), "a recording pass keeps a tape");
+        taped.backward(&positions, &directions, tape, &gd, &gc);
+        fresh.backward(&positions, &directions, None, &gd, &gc);
+        let bits = |f: &VoxelGridField| f.gradients().iter().map(|g| g.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&taped), bits(&fresh));
+        assert!(taped.gradients().iter().any(|&g| g != 0.0));
+        // A tape for other samples is not used.
+        let mut other = field();
+        let tape = other.forward(&positions[..2], &directions[..2], &mut d[..2], &mut c[..2], true);
+        other.backward(&positions, &directions, tape, &gd, &gc);
+        assert_eq!(bits(&other), bits(&fresh));
+    }
+
+    #[test]
+    fn gradients_that_overflow_when_summed_are_detected() {
+        // Every sample at one point: each colour gradient is finite, their sum is not.
+        let mut f = field();
+        let positions = vec![[0.1, -0.3, 0.5]; 200];
+        let directions = vec![[0.0, 0.6, 0.8]; 200];
+        f.backward(&positions, &directions, None, &[0.0; 200], &[[3e38, 0.0, 0.0]; 200]);
+        assert!(f.gradients().iter().any(|g| g.is_infinite()));
+        assert!(!f.gradients_finite());
+        // A NaN among finite values is not lost either.
+        let mut f = field();
+        f.backward(&positions[..3], &directions[..3], None, &[f32::NAN, 0.5, 0.5], &[[0.1, 0.2, 0.3]; 3]);
+        assert!(!f.gradients_finite());
+        // Ordinary gradients are finite.
+        let mut f = field();
+        f.backward(&positions[..3], &directions[..3], None, &[0.5; 3], &[[0.1, 0.2, 0.3]; 3]);
+        assert!(f.gradients_finite());
     }
 
     #[test]
