@@ -5,6 +5,8 @@
 //! ([`FrozenPass::density_state_dim`](crate::plugin::FrozenPass::density_state_dim), NeRF's trunk activations) hands it over for the kept
 //! candidates, so that a frozen render's colour pass does not run the density network again.
 
+use rayon::prelude::*;
+
 use crate::plugin::field::plain;
 use crate::plugin::RadianceField;
 use crate::render::sampler::Samples;
@@ -141,35 +143,33 @@ pub fn density_pass(
                 field.density(&positions, &mut values);
             }
             // Scan each ray's wave in order, as compositing will.
-            let mut row = 0;
-            let mut state_fits = true;
-            for &r in &live[first..last] {
-                let ray = &mut rays[r];
-                let stop = ray.cursor.saturating_add(wave).min(end_of(r));
-                for (k, i) in (ray.cursor..stop).enumerate() {
-                    if ray.optical > stop_at {
-                        break;
-                    }
-                    let sigma = values[row + k];
-                    pass.sigma[i] = sigma;
-                    let tau = sigma * candidates.delta[i];
-                    let w = -(-tau).exp_m1() * (-ray.optical).exp();
-                    let keep = min_weight <= 0.0 || w > min_weight;
-                    pass.keep[i] = keep;
-                    if keep {
-                        pass.skipped_before[i] = ray.skipped;
-                        ray.skipped = 0.0;
-                        if let Some(s) = state.as_mut() {
-                            state_fits &= s.push(i, &group_state[(row + k) * dim..][..dim]);
-                        }
-                    } else {
-                        ray.skipped += tau;
-                    }
-                    ray.optical += tau;
+            let state_fits = match state.as_mut() {
+                Some(s) => scan_with_state(
+                    &mut rays,
+                    &live[first..last],
+                    wave,
+                    stop_at,
+                    min_weight,
+                    &values,
+                    &mut pass,
+                    s,
+                    &group_state,
+                    candidates,
+                ),
+                None => {
+                    scan_parallel(
+                        &mut rays,
+                        &live[first..last],
+                        wave,
+                        stop_at,
+                        min_weight,
+                        &values,
+                        candidates,
+                        &mut pass,
+                    );
+                    true
                 }
-                row += stop - ray.cursor;
-                ray.cursor = stop;
-            }
+            };
             if !state_fits {
                 // Over budget: the colour pass evaluates the whole network instead.
                 state = None;
@@ -181,6 +181,128 @@ pub fn density_pass(
     }
     pass.state = state;
     pass
+}
+
+/// One past ray `r`'s last candidate.
+fn ray_end(candidates: &Samples, r: usize) -> usize {
+    candidates.ray_start[r + 1] as usize
+}
+
+/// What the scan decides for one candidate of a ray's wave, given the ray's optical depth so
+/// far: its density is kept, and it is kept or skipped.
+#[inline]
+fn scan_candidate(ray: &mut RayScan, sigma: f32, delta: f32, min_weight: f32) -> (bool, f32) {
+    let tau = sigma * delta;
+    let w = -(-tau).exp_m1() * (-ray.optical).exp();
+    let keep = min_weight <= 0.0 || w > min_weight;
+    let skipped = if keep {
+        std::mem::take(&mut ray.skipped)
+    } else {
+        ray.skipped += tau;
+        0.0
+    };
+    ray.optical += tau;
+    (keep, skipped)
+}
+
+/// The scan of one group's waves when no state is kept: rays are independent, so they are
+/// scanned in parallel, each in order, with the same arithmetic as one after another.
+#[allow(clippy::too_many_arguments)]
+fn scan_parallel(
+    rays: &mut [RayScan],
+    group: &[usize],
+    wave: usize,
+    stop_at: f32,
+    min_weight: f32,
+    values: &[f32],
+    candidates: &Samples,
+    pass: &mut DensityPass,
+) {
+    // Each group ray's wave: (ray, first candidate, first row in `values`, length).
+    let mut spans = Vec::with_capacity(group.len());
+    let mut rows = 0;
+    for &r in group {
+        let cursor = rays[r].cursor;
+        let len = cursor.saturating_add(wave).min(ray_end(candidates, r)) - cursor;
+        spans.push((r, cursor, rows, len));
+        rows += len;
+    }
+    // Per row: whether it was scanned, whether it is kept, and the optical depth skipped
+    // before it. Each ray gets its own rows and its own scan state (the group's rays ascend).
+    let mut decided = vec![(false, false, 0.0f32); rows];
+    let mut pieces = Vec::with_capacity(spans.len());
+    let mut rest = &mut decided[..];
+    let mut next = spans.iter().peekable();
+    for (r, ray) in rays.iter_mut().enumerate() {
+        let Some(&(_, cursor, row, len)) = next.next_if(|span| span.0 == r) else { continue };
+        let (part, tail) = std::mem::take(&mut rest).split_at_mut(len);
+        rest = tail;
+        pieces.push((ray, part, cursor, row));
+    }
+    pieces.par_iter_mut().with_min_len(64).for_each(|(ray, part, cursor, row)| {
+        for (k, out) in part.iter_mut().enumerate() {
+            if ray.optical > stop_at {
+                break;
+            }
+            let (keep, skipped) = scan_candidate(ray, values[*row + k], candidates.delta[*cursor + k], min_weight);
+            *out = (true, keep, skipped);
+        }
+    });
+    drop(pieces);
+    for (r, cursor, row, len) in spans {
+        for k in 0..len {
+            let (scanned, keep, skipped) = decided[row + k];
+            if !scanned {
+                break;
+            }
+            pass.sigma[cursor + k] = values[row + k];
+            pass.keep[cursor + k] = keep;
+            if keep {
+                pass.skipped_before[cursor + k] = skipped;
+            }
+        }
+        rays[r].cursor = cursor + len;
+    }
+}
+
+/// The scan of one group's waves when the field's state is kept for the kept candidates: one
+/// ray after another, since the state is appended in that order. Returns whether the state
+/// still fits its budget.
+#[allow(clippy::too_many_arguments)]
+fn scan_with_state(
+    rays: &mut [RayScan],
+    group: &[usize],
+    wave: usize,
+    stop_at: f32,
+    min_weight: f32,
+    values: &[f32],
+    pass: &mut DensityPass,
+    state: &mut KeptState,
+    group_state: &[f32],
+    candidates: &Samples,
+) -> bool {
+    let dim = state.dim;
+    let mut row = 0;
+    let mut fits = true;
+    for &r in group {
+        let ray = &mut rays[r];
+        let stop = ray.cursor.saturating_add(wave).min(ray_end(candidates, r));
+        for (k, i) in (ray.cursor..stop).enumerate() {
+            if ray.optical > stop_at {
+                break;
+            }
+            pass.sigma[i] = values[row + k];
+            let (keep, skipped) = scan_candidate(ray, values[row + k], candidates.delta[i], min_weight);
+            pass.keep[i] = keep;
+            if keep {
+                pass.skipped_before[i] = skipped;
+                fits &= state.push(i, &group_state[(row + k) * dim..][..dim]);
+            }
+        }
+        row += stop - ray.cursor;
+        ray.cursor = stop;
+    }
+    fits
 }
 
 #[cfg(test)]
@@ -318,7 +440,40 @@ mod tests {
             assert_eq!((tight.keep, tight.sigma), (pass.keep.clone(), pass.sigma.clone()));
             let plain = density_pass(&Ramp { with_state: false }, &c, early_stop, min_weight, usize::MAX, Vec::new());
             assert!(plain.state.is_none());
-            assert_eq!(plain.keep, pass.keep);
+            assert_same_decisions(&plain, &pass);
+        }
+    }
+
+    fn assert_same_decisions(a: &DensityPass, b: &DensityPass) {
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(a.keep, b.keep);
+        assert_eq!(bits(&a.sigma), bits(&b.sigma));
+        assert_eq!(bits(&a.skipped_before), bits(&b.skipped_before));
+        assert_eq!(a.evaluated, b.evaluated);
+    }
+
+    /// Without a state the rays of a group are scanned in parallel: with thousands of rays of
+    /// every length, the decisions equal those of the one-ray-after-another scan bit for bit.
+    #[test]
+    fn the_parallel_scan_decides_as_the_serial_one() {
+        let mut c = Samples { ray_start: vec![0], ..Default::default() };
+        for r in 0..3000usize {
+            let len = (r * 7919) % 230;
+            for k in 0..len {
+                c.t.push(k as f32);
+                c.delta.push(0.002 + 0.001 * (r % 5) as f32);
+                c.positions.push([-0.5 + 0.007 * k as f32 + 0.001 * (r % 13) as f32, 0.0, 0.0]);
+                c.directions.push([1.0, 0.0, 0.0]);
+            }
+            c.ray_start.push(c.t.len() as u32);
+        }
+        for (early_stop, min_weight) in [(1e-4, 1e-3), (1e-2, 0.0), (0.0, 1e-3)] {
+            let serial = density_pass(&Ramp { with_state: true }, &c, early_stop, min_weight, usize::MAX, Vec::new());
+            let parallel =
+                density_pass(&Ramp { with_state: false }, &c, early_stop, min_weight, usize::MAX, Vec::new());
+            assert!(serial.state.is_some() && parallel.state.is_none());
+            assert!(parallel.keep.iter().any(|&k| k) && parallel.keep.iter().any(|&k| !k));
+            assert_same_decisions(&parallel, &serial);
         }
     }
 
