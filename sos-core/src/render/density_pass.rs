@@ -143,30 +143,11 @@ pub fn density_pass(
                 field.density(&positions, &mut values);
             }
             // Scan each ray's wave in order, as compositing will.
+            let scan = WaveScan { group: &live[first..last], wave, stop_at, min_weight, values: &values, candidates };
             let state_fits = match state.as_mut() {
-                Some(s) => scan_with_state(
-                    &mut rays,
-                    &live[first..last],
-                    wave,
-                    stop_at,
-                    min_weight,
-                    &values,
-                    &mut pass,
-                    s,
-                    &group_state,
-                    candidates,
-                ),
+                Some(s) => scan.with_state(&mut rays, &mut pass, s, &group_state),
                 None => {
-                    scan_parallel(
-                        &mut rays,
-                        &live[first..last],
-                        wave,
-                        stop_at,
-                        min_weight,
-                        &values,
-                        candidates,
-                        &mut pass,
-                    );
+                    scan.parallel(&mut rays, &mut pass);
                     true
                 }
             };
@@ -205,104 +186,105 @@ fn scan_candidate(ray: &mut RayScan, sigma: f32, delta: f32, min_weight: f32) ->
     (keep, skipped)
 }
 
-/// The scan of one group's waves when no state is kept: rays are independent, so they are
-/// scanned in parallel, each in order, with the same arithmetic as one after another.
-#[allow(clippy::too_many_arguments)]
-fn scan_parallel(
-    rays: &mut [RayScan],
-    group: &[usize],
+/// One group's waves, scanned as compositing will: each ray in order.
+#[derive(Clone, Copy)]
+struct WaveScan<'a> {
+    /// The group's live rays, ascending.
+    group: &'a [usize],
     wave: usize,
+    /// Optical depth at which a ray terminates.
     stop_at: f32,
     min_weight: f32,
-    values: &[f32],
-    candidates: &Samples,
-    pass: &mut DensityPass,
-) {
-    // Each group ray's wave: (ray, first candidate, first row in `values`, length).
-    let mut spans = Vec::with_capacity(group.len());
-    let mut rows = 0;
-    for &r in group {
-        let cursor = rays[r].cursor;
-        let len = cursor.saturating_add(wave).min(ray_end(candidates, r)) - cursor;
-        spans.push((r, cursor, rows, len));
-        rows += len;
-    }
-    // Per row: whether it was scanned, whether it is kept, and the optical depth skipped
-    // before it. Each ray gets its own rows and its own scan state (the group's rays ascend).
-    let mut decided = vec![(false, false, 0.0f32); rows];
-    let mut pieces = Vec::with_capacity(spans.len());
-    let mut rest = &mut decided[..];
-    let mut next = spans.iter().peekable();
-    for (r, ray) in rays.iter_mut().enumerate() {
-        let Some(&(_, cursor, row, len)) = next.next_if(|span| span.0 == r) else { continue };
-        let (part, tail) = std::mem::take(&mut rest).split_at_mut(len);
-        rest = tail;
-        pieces.push((ray, part, cursor, row));
-    }
-    pieces.par_iter_mut().with_min_len(64).for_each(|(ray, part, cursor, row)| {
-        for (k, out) in part.iter_mut().enumerate() {
-            if ray.optical > stop_at {
-                break;
-            }
-            let (keep, skipped) = scan_candidate(ray, values[*row + k], candidates.delta[*cursor + k], min_weight);
-            *out = (true, keep, skipped);
-        }
-    });
-    drop(pieces);
-    for (r, cursor, row, len) in spans {
-        for k in 0..len {
-            let (scanned, keep, skipped) = decided[row + k];
-            if !scanned {
-                break;
-            }
-            pass.sigma[cursor + k] = values[row + k];
-            pass.keep[cursor + k] = keep;
-            if keep {
-                pass.skipped_before[cursor + k] = skipped;
-            }
-        }
-        rays[r].cursor = cursor + len;
-    }
+    /// The group's densities, ray after ray.
+    values: &'a [f32],
+    candidates: &'a Samples,
 }
 
-/// The scan of one group's waves when the field's state is kept for the kept candidates: one
-/// ray after another, since the state is appended in that order. Returns whether the state
-/// still fits its budget.
-#[allow(clippy::too_many_arguments)]
-fn scan_with_state(
-    rays: &mut [RayScan],
-    group: &[usize],
-    wave: usize,
-    stop_at: f32,
-    min_weight: f32,
-    values: &[f32],
-    pass: &mut DensityPass,
-    state: &mut KeptState,
-    group_state: &[f32],
-    candidates: &Samples,
-) -> bool {
-    let dim = state.dim;
-    let mut row = 0;
-    let mut fits = true;
-    for &r in group {
-        let ray = &mut rays[r];
-        let stop = ray.cursor.saturating_add(wave).min(ray_end(candidates, r));
-        for (k, i) in (ray.cursor..stop).enumerate() {
-            if ray.optical > stop_at {
-                break;
-            }
-            pass.sigma[i] = values[row + k];
-            let (keep, skipped) = scan_candidate(ray, values[row + k], candidates.delta[i], min_weight);
-            pass.keep[i] = keep;
-            if keep {
-                pass.skipped_before[i] = skipped;
-                fits &= state.push(i, &group_state[(row + k) * dim..][..dim]);
-            }
+impl WaveScan<'_> {
+    /// The scan when no state is kept: rays are independent, so they are scanned in parallel,
+    /// each in order, with the same arithmetic as one after another.
+    fn parallel(&self, rays: &mut [RayScan], pass: &mut DensityPass) {
+        let WaveScan { group, wave, stop_at, min_weight, values, candidates } = *self;
+        // Each group ray's wave: (ray, first candidate, first row in `values`, length).
+        let mut spans = Vec::with_capacity(group.len());
+        let mut rows = 0;
+        for &r in group {
+            let cursor = rays[r].cursor;
+            let len = cursor.saturating_add(wave).min(ray_end(candidates, r)) - cursor;
+            spans.push((r, cursor, rows, len));
+            rows += len;
         }
-        row += stop - ray.cursor;
-        ray.cursor = stop;
+        // Per row: whether it was scanned, whether it is kept, and the optical depth skipped
+        // before it. Each ray gets its own rows and its own scan state (the group's rays ascend).
+        let mut decided = vec![(false, false, 0.0f32); rows];
+        let mut pieces = Vec::with_capacity(spans.len());
+        let mut rest = &mut decided[..];
+        let mut next = spans.iter().peekable();
+        for (r, ray) in rays.iter_mut().enumerate() {
+            let Some(&(_, cursor, row, len)) = next.next_if(|span| span.0 == r) else { continue };
+            let (part, tail) = std::mem::take(&mut rest).split_at_mut(len);
+            rest = tail;
+            pieces.push((ray, part, cursor, row));
+        }
+        pieces.par_iter_mut().with_min_len(64).for_each(|(ray, part, cursor, row)| {
+            for (k, out) in part.iter_mut().enumerate() {
+                if ray.optical > stop_at {
+                    break;
+                }
+                let (keep, skipped) = scan_candidate(ray, values[*row + k], candidates.delta[*cursor + k], min_weight);
+                *out = (true, keep, skipped);
+            }
+        });
+        drop(pieces);
+        for (r, cursor, row, len) in spans {
+            for k in 0..len {
+                let (scanned, keep, skipped) = decided[row + k];
+                if !scanned {
+                    break;
+                }
+                pass.sigma[cursor + k] = values[row + k];
+                pass.keep[cursor + k] = keep;
+                if keep {
+                    pass.skipped_before[cursor + k] = skipped;
+                }
+            }
+            rays[r].cursor = cursor + len;
+        }
     }
-    fits
+
+    /// The scan when the field's state is kept for the kept candidates: one ray after another,
+    /// since the state is appended in that order. Returns whether the state still fits its budget.
+    fn with_state(
+        &self,
+        rays: &mut [RayScan],
+        pass: &mut DensityPass,
+        state: &mut KeptState,
+        group_state: &[f32],
+    ) -> bool {
+        let WaveScan { group, wave, stop_at, min_weight, values, candidates } = *self;
+        let dim = state.dim;
+        let mut row = 0;
+        let mut fits = true;
+        for &r in group {
+            let ray = &mut rays[r];
+            let stop = ray.cursor.saturating_add(wave).min(ray_end(candidates, r));
+            for (k, i) in (ray.cursor..stop).enumerate() {
+                if ray.optical > stop_at {
+                    break;
+                }
+                pass.sigma[i] = values[row + k];
+                let (keep, skipped) = scan_candidate(ray, values[row + k], candidates.delta[i], min_weight);
+                pass.keep[i] = keep;
+                if keep {
+                    pass.skipped_before[i] = skipped;
+                    fits &= state.push(i, &group_state[(row + k) * dim..][..dim]);
+                }
+            }
+            row += stop - ray.cursor;
+            ray.cursor = stop;
+        }
+        fits
+    }
 }
 
 #[cfg(test)]
