@@ -109,7 +109,7 @@ pub fn density_pass(
     };
     // Optical depth at which the transmittance reaches `early_stop`.
     let stop_at = if early_stop > 0.0 { -early_stop.ln() } else { f32::INFINITY };
-    let end_of = |r: usize| candidates.ray_start[r + 1] as usize;
+    let end_of = |r: usize| ray_end(candidates, r);
     let mut rays: Vec<RayScan> = (0..candidates.n_rays())
         .map(|r| RayScan { cursor: candidates.ray_start[r] as usize, optical: 0.0, skipped: 0.0 })
         .collect();
@@ -218,12 +218,15 @@ impl WaveScan<'_> {
         // before it. Each ray gets its own rows and its own scan state (the group's rays ascend).
         let mut decided = vec![(false, false, 0.0f32); rows];
         let mut pieces = Vec::with_capacity(spans.len());
-        let mut rest = &mut decided[..];
-        let mut next = spans.iter().peekable();
-        for (r, ray) in rays.iter_mut().enumerate() {
-            let Some(&(_, cursor, row, len)) = next.next_if(|span| span.0 == r) else { continue };
+        let (mut rest, mut rest_rays, mut first_ray) = (&mut decided[..], &mut rays[..], 0);
+        for &(r, cursor, row, len) in &spans {
             let (part, tail) = std::mem::take(&mut rest).split_at_mut(len);
             rest = tail;
+            let (ray, tail) = std::mem::take(&mut rest_rays)[r - first_ray..]
+                .split_first_mut()
+                .expect("a group's rays lie in the batch, ascending");
+            rest_rays = tail;
+            first_ray = r + 1;
             pieces.push((ray, part, cursor, row));
         }
         pieces.par_iter_mut().with_min_len(64).for_each(|(ray, part, cursor, row)| {

@@ -80,15 +80,15 @@ impl FrozenRender {
     ) -> (Vec<RayColour>, RenderTiming) {
         let cached = self.rays.lookup(keys);
         let missing: Vec<usize> = (0..rays.len()).filter(|&i| cached[i].is_none()).collect();
+        let mut colours: Vec<RayColour> = cached.into_iter().map(Option::unwrap_or_default).collect();
         if missing.is_empty() {
-            return (cached.into_iter().map(Option::unwrap_or_default).collect(), RenderTiming::default());
+            return (colours, RenderTiming::default());
         }
         let misses = RayBatch {
             origins: missing.iter().map(|&i| rays.origins[i]).collect(),
             directions: missing.iter().map(|&i| rays.directions[i]).collect(),
         };
         let mut r = self.render(session, &misses, false, false, rng);
-        let mut colours: Vec<RayColour> = cached.into_iter().map(Option::unwrap_or_default).collect();
         for (&i, &c) in missing.iter().zip(&r.colours) {
             colours[i] = c;
             self.rays.insert(keys[i], c);
