@@ -313,7 +313,9 @@ fn default_output_dir() -> PathBuf {
 pub struct TrainConfig {
     /// Optimisation steps.
     pub steps: usize,
-    /// Random rays per step (drawn from all training views).
+    /// Random rays per step (drawn from all training views). 2048 by default: on the random
+    /// worlds it gives the masks of 4096 at about two thirds of the stage-1 time (the
+    /// `stage1-rays` sweep; `benchmarks/RESULTS.md`).
     pub rays_per_step: usize,
     /// Learning-rate factor at the last step (exponential decay from 1).
     pub final_lr_factor: f32,
@@ -361,7 +363,7 @@ impl Default for TrainConfig {
     fn default() -> Self {
         TrainConfig {
             steps: 3000,
-            rays_per_step: 4096,
+            rays_per_step: 2048,
             final_lr_factor: 0.1,
             samples_per_ray: 384,
             early_stop: 1e-4,
