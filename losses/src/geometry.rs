@@ -7,7 +7,9 @@
 //! The `P⁴` volumes are never stored: a first pass accumulates the row means and the global
 //! mean of `G`; a second pass recomputes `G` and `S` tile by tile and accumulates the loss and
 //! its gradient. Both passes run in f32 with SIMD-friendly lane accumulators flushed to f64
-//! every tile, in parallel over rows.
+//! every tile, in parallel over rows. The identity term pairs a patch with itself, so `G` and
+//! `S` are symmetric there: its pass 2 visits each unordered pair once, carrying both orders'
+//! shares of the loss and gradient.
 
 use rand::RngCore;
 use rayon::prelude::*;
@@ -217,13 +219,18 @@ struct RowAcc<const D: usize> {
 
 /// Pass 2 for `W` consecutive columns at `q0` of row `p`: accumulates `S·(G_c − b)` into
 /// `acc.loss`, and `∂/∂L1 · sign` (before the `1/M` factor) into `acc.ga` and `gb` (`[D, m]`).
+///
+/// `SYMMETRIC` (a patch against itself, `q > p`): the pair stands for `(p, q)` and `(q, p)`,
+/// whose centred kernels differ only in their row shift, so the weight is
+/// `2G + shift[p] + shift[q]` (`shift` = `row_shift`).
 // Lane loops index fixed-width arrays on purpose: that is the shape LLVM vectorises.
-#[allow(clippy::needless_range_loop)]
+#[allow(clippy::needless_range_loop, clippy::too_many_arguments)]
 #[inline(always)]
-fn pair_block<const W: usize, const D: usize>(
+fn pair_block<const W: usize, const D: usize, const SYMMETRIC: bool>(
     v: &PairView<D>,
     a: ([f32; 3], [f32; D]),
     row_shift: f32,
+    shift: &[f32],
     q0: usize,
     acc: &mut RowAcc<D>,
     gb: &mut [f32],
@@ -240,9 +247,10 @@ fn pair_block<const W: usize, const D: usize>(
         }
     }
     let mut coef = [0.0f32; LANES];
+    let col_shift = if SYMMETRIC { &shift[q0..q0 + W] } else { &[] };
     for j in 0..W {
         let g = k.of_distance((pa[0] - bx[j]).abs() + (pa[1] - by[j]).abs() + (pa[2] - bz[j]).abs());
-        let centred = g + row_shift;
+        let centred = if SYMMETRIC { (g + row_shift) + (g + col_shift[j]) } else { g + row_shift };
         let t = 1.0 / (l1[j] + k.epsilon);
         // S > 0 always (the zero clamp is a no-op); the cap passes no gradient.
         let s = if t < k.cap { t } else { k.cap };
@@ -296,22 +304,30 @@ impl PairAcc {
 }
 
 /// Pass 2 over rows `rows` of one patch pair; `row_shift[p] = mean(G) − b − mean_q G[p,:]`.
-fn pair_rows<const D: usize>(v: &PairView<D>, rows: std::ops::Range<usize>, row_shift: &[f32], out: &mut PairAcc) {
+/// `SYMMETRIC` (a patch against itself) visits only the columns right of the diagonal (see
+/// [`pair_block`]); the diagonal is left to the caller.
+fn pair_rows<const D: usize, const SYMMETRIC: bool>(
+    v: &PairView<D>,
+    rows: std::ops::Range<usize>,
+    row_shift: &[f32],
+    out: &mut PairAcc,
+) {
     let m = v.pb[0].len();
     let mut gb = vec![0.0f32; D * m];
     for p in rows {
         let a = ([v.pa[0][p], v.pa[1][p], v.pa[2][p]], std::array::from_fn(|c| v.sa[c][p]));
         let (mut loss, mut ga) = (0.0f64, [0.0f64; D]);
-        for t0 in (0..m).step_by(TILE) {
+        let first = if SYMMETRIC { p + 1 } else { 0 };
+        for t0 in (first..m).step_by(TILE) {
             let t1 = (t0 + TILE).min(m);
             let mut acc = RowAcc { loss: [0.0; LANES], ga: [[0.0; LANES]; D] };
             let mut q = t0;
             while q + LANES <= t1 {
-                pair_block::<LANES, D>(v, a, row_shift[p], q, &mut acc, &mut gb);
+                pair_block::<LANES, D, SYMMETRIC>(v, a, row_shift[p], row_shift, q, &mut acc, &mut gb);
                 q += LANES;
             }
             while q < t1 {
-                pair_block::<1, D>(v, a, row_shift[p], q, &mut acc, &mut gb);
+                pair_block::<1, D, SYMMETRIC>(v, a, row_shift[p], row_shift, q, &mut acc, &mut gb);
                 q += 1;
             }
             loss += acc.loss.iter().map(|&x| f64::from(x)).sum::<f64>();
@@ -354,6 +370,7 @@ fn pass2<const D: usize>(
         let j = partner[k];
         let view = PairView::<D> { pa: pts(k), pb: pts(j), sa: sl(k), sb: sl(j), kernel };
         let row_shift: Vec<f32> = sums.iter().map(|&s| (global_mean - shift - s / m as f64) as f32).collect();
+        let symmetric = j == k;
         // A fixed split of the rows into tasks, merged in order: the same sums every run.
         let task_rows = ROWS.max(m.div_ceil(MAX_TASKS));
         let acc = (0..m.div_ceil(task_rows))
@@ -362,7 +379,12 @@ fn pass2<const D: usize>(
                 let mut acc = PairAcc::new(D, m);
                 let rows = task * task_rows..((task + 1) * task_rows).min(m);
                 for start in rows.clone().step_by(ROWS) {
-                    pair_rows(&view, start..(start + ROWS).min(rows.end), &row_shift, &mut acc);
+                    let block = start..(start + ROWS).min(rows.end);
+                    if symmetric {
+                        pair_rows::<D, true>(&view, block, &row_shift, &mut acc);
+                    } else {
+                        pair_rows::<D, false>(&view, block, &row_shift, &mut acc);
+                    }
                 }
                 acc
             })
@@ -370,6 +392,12 @@ fn pass2<const D: usize>(
             .into_iter()
             .fold(PairAcc::new(D, m), PairAcc::merge);
         loss += acc.loss;
+        if symmetric {
+            // The diagonal: zero distances in both kernels, and no gradient (no sign).
+            let (g, t) = (kernel.of_distance(0.0), 1.0 / kernel.epsilon);
+            let s = if t < kernel.cap { t } else { kernel.cap };
+            loss += row_shift.iter().map(|&r| f64::from(s * (g + r))).sum::<f64>();
+        }
         // Only the first d (real) channels carry gradient.
         for (g, a) in grad_hat[k * d * m..(k + 1) * d * m].iter_mut().zip(&acc.ga) {
             *g += a;
