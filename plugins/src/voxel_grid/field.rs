@@ -4,6 +4,7 @@ use rayon::prelude::*;
 use sos_core::camera::Vec3;
 use sos_core::encoding::{positional_encoding, positional_encoding_dim, sh_basis, sh_coefficients};
 use sos_core::nn::activation::{sigmoid, softplus};
+use sos_core::nn::vector_math;
 use sos_core::plugin::{state, CoarseToFine, FieldTape, RadianceField, Regularized};
 use sos_core::render::contraction::Contraction;
 use sos_core::scene::SceneExtent;
@@ -56,11 +57,6 @@ impl VoxelGridField {
         self.grid.corners(self.contraction.to_unit(p))
     }
 
-    #[inline]
-    fn density_of(&self, raw: f32) -> f32 {
-        softplus(raw + self.shift) / self.voxel_length
-    }
-
     /// Density and colour of one chunk of samples, and with `tape` their corners and the
     /// sigmoid of their raw density.
     fn forward_chunk(
@@ -74,30 +70,43 @@ impl VoxelGridField {
         let n_sh = self.n_sh;
         let mut feat = vec![0.0; self.grid.channels];
         let mut basis = vec![0.0; n_sh];
+        // Pre-activations first, then each activation over the whole chunk, vectorised.
+        let mut outside = Vec::new();
         for i in 0..p.len() {
             let corners = self.corners(p[i]);
             match corners {
                 Some(corners) => {
                     self.grid.gather(&corners, &mut feat);
-                    d[i] = self.density_of(feat[0]);
+                    d[i] = feat[0] + self.shift;
                     sh_basis(self.config.sh_degree, dirs[i], &mut basis);
                     for k in 0..3 {
                         let coef = &feat[1 + k * n_sh..1 + (k + 1) * n_sh];
-                        let x: f32 = coef.iter().zip(&basis).map(|(a, b)| a * b).sum();
-                        c[i][k] = sigmoid(x);
-                    }
-                    if let Some((_, sigmoids)) = tape.as_mut() {
-                        sigmoids[i] = sigmoid(feat[0] + self.shift);
+                        c[i][k] = coef.iter().zip(&basis).map(|(a, b)| a * b).sum();
                     }
                 }
-                None => {
-                    d[i] = 0.0;
-                    c[i] = [0.0; 3];
-                }
+                None => outside.push(i),
             }
             if let Some((kept, _)) = tape.as_mut() {
                 kept[i] = corners;
             }
+        }
+        if let Some((_, sigmoids)) = tape.as_mut() {
+            sigmoids.copy_from_slice(d);
+            vector_math::sigmoid_in_place(sigmoids);
+        }
+        self.activate_density(d);
+        vector_math::sigmoid_in_place(c.as_flattened_mut());
+        for i in outside {
+            d[i] = 0.0;
+            c[i] = [0.0; 3];
+        }
+    }
+
+    /// Raw density plus the shift, in place, to density: `softplus(x) / voxel_length`.
+    fn activate_density(&self, d: &mut [f32]) {
+        vector_math::softplus_in_place(d);
+        for v in d {
+            *v /= self.voxel_length;
         }
     }
 
@@ -123,11 +132,16 @@ impl VoxelGridField {
 impl RadianceField for VoxelGridField {
     fn density(&self, positions: &[Vec3], density: &mut [f32]) {
         positions.par_chunks(CHUNK).zip(density.par_chunks_mut(CHUNK)).for_each(|(p, d)| {
-            for (pi, di) in p.iter().zip(d.iter_mut()) {
-                *di = match self.corners(*pi) {
-                    Some(c) => self.density_of(self.grid.gather_first(&c)),
-                    None => 0.0,
-                };
+            let mut outside = Vec::new();
+            for (i, (pi, di)) in p.iter().zip(d.iter_mut()).enumerate() {
+                match self.corners(*pi) {
+                    Some(c) => *di = self.grid.gather_first(&c) + self.shift,
+                    None => outside.push(i),
+                }
+            }
+            self.activate_density(d);
+            for i in outside {
+                d[i] = 0.0;
             }
         });
     }

@@ -11,6 +11,7 @@ pub mod linear;
 pub mod matmul;
 pub mod mlp;
 pub mod param;
+pub mod vector_math;
 
 pub use activation::{add_column_sums, Activation};
 pub use adam::Adam;
