@@ -2,7 +2,6 @@
 //! space with the occupancy grid, and inverse-CDF importance sampling.
 
 use rand::Rng;
-use rayon::prelude::*;
 
 use crate::camera::{axpy, Vec3};
 use crate::render::contraction::Contraction;
@@ -208,125 +207,47 @@ pub fn march(
     options: MarchOptions,
     rng: &mut impl Rng,
 ) -> Samples {
-    let steps = options.steps.max(1);
-    let contexts: Vec<Option<RayCtx>> = (0..rays.len())
-        .into_par_iter()
-        .with_min_len(MARCH_TASK_RAYS)
-        .map(|r| ray_context(extent, rays.origins[r], rays.directions[r]))
-        .collect();
-    // The jitter is drawn up front in the order of a ray-by-ray march (`steps` draws per ray
-    // that meets the extent), so the samples do not depend on how the rays are split into tasks.
-    let jitter: Vec<f32> = if options.stratified {
-        let meeting = contexts.iter().filter(|c| c.is_some()).count();
-        (0..meeting * steps).map(|_| rng.gen::<f32>()).collect()
-    } else {
-        Vec::new()
+    // Maps the normalised position s ∈ [0, 1] along a ray to a distance.
+    let t_of: fn(&RayCtx, f32) -> f32 = match spacing_for(extent) {
+        Spacing::Linear => t_linear,
+        Spacing::Disparity { .. } => t_disparity,
+        Spacing::SphereThenDisparity { .. } => t_sphere,
     };
-    let marcher = Marcher { extent, contraction, occupancy, near, steps, stratified: options.stratified };
-    // Each task's rays and the offset of its first jitter draw.
-    let mut tasks = Vec::with_capacity(rays.len().div_ceil(MARCH_TASK_RAYS));
-    let mut drawn = 0;
-    for first in (0..rays.len()).step_by(MARCH_TASK_RAYS) {
-        let span = first..(first + MARCH_TASK_RAYS).min(rays.len());
-        let meeting = contexts[span.clone()].iter().filter(|c| c.is_some()).count();
-        tasks.push((span, drawn));
-        drawn += meeting * steps;
-    }
-    let parts: Vec<Samples> = tasks
-        .into_par_iter()
-        .map(|(span, first_draw)| marcher.march_rays(&contexts[span], &jitter[first_draw.min(jitter.len())..]))
-        .collect();
-    concatenate(parts)
-}
-
-/// Rays per parallel task of [`march`].
-const MARCH_TASK_RAYS: usize = 512;
-
-/// What [`march`] needs to place the candidates of one ray.
-struct Marcher<'a> {
-    extent: &'a SceneExtent,
-    contraction: &'a Contraction,
-    occupancy: Option<&'a OccupancyGrid>,
-    near: f32,
-    steps: usize,
-    stratified: bool,
-}
-
-impl Marcher<'_> {
-    /// The candidates of consecutive rays (`None`: the ray misses the extent), taking
-    /// `steps` jitter draws from `jitter` for each ray that meets it when stratified.
-    fn march_rays(&self, contexts: &[Option<RayCtx>], jitter: &[f32]) -> Samples {
-        // Maps the normalised position s ∈ [0, 1] along a ray to a distance.
-        let t_of: fn(&RayCtx, f32) -> f32 = match spacing_for(self.extent) {
-            Spacing::Linear => t_linear,
-            Spacing::Disparity { .. } => t_disparity,
-            Spacing::SphereThenDisparity { .. } => t_sphere,
-        };
-        let mut out = Samples { ray_start: Vec::with_capacity(contexts.len() + 1), ..Default::default() };
-        out.ray_start.push(0);
-        let steps = self.steps;
-        let inv_steps = 1.0 / steps as f32;
-        let mut draws = jitter.iter();
-        for ctx in contexts {
-            if let Some(ctx) = ctx {
-                let (o, d) = (ctx.origin, ctx.direction);
-                let mut t_prev = t_of(ctx, 0.0);
-                for i in 0..steps {
-                    let t_next = t_of(ctx, (i + 1) as f32 * inv_steps);
-                    let xi = if self.stratified { *draws.next().expect("a jitter draw per candidate") } else { 0.5 };
-                    let t = t_prev + xi * (t_next - t_prev);
-                    let delta = t_next - t_prev;
-                    t_prev = t_next;
-                    if delta <= 0.0 || t < self.near {
-                        continue;
-                    }
-                    let p = axpy(o, t, d);
-                    let u = self.contraction.to_unit(p);
-                    if !Contraction::inside(u) {
-                        continue;
-                    }
-                    if let Some(occ) = self.occupancy {
-                        if !occ.is_occupied(u) {
-                            continue;
-                        }
-                    }
-                    out.t.push(t);
-                    out.delta.push(delta);
-                    out.positions.push(p);
-                    out.directions.push(d);
-                    out.s.push((i as f32 + xi) * inv_steps);
-                }
-            }
-            out.ray_start.push(out.t.len() as u32);
-        }
-        out
-    }
-}
-
-/// The samples of consecutive ray batches as one batch.
-fn concatenate(parts: Vec<Samples>) -> Samples {
-    if parts.len() == 1 {
-        return parts.into_iter().next().expect("one part");
-    }
-    let (n_rays, n) = parts.iter().fold((0, 0), |(r, n), p| (r + p.n_rays(), n + p.len()));
-    let mut out = Samples {
-        ray_start: Vec::with_capacity(n_rays + 1),
-        t: Vec::with_capacity(n),
-        delta: Vec::with_capacity(n),
-        positions: Vec::with_capacity(n),
-        directions: Vec::with_capacity(n),
-        skipped_tau: Vec::new(),
-        s: Vec::with_capacity(n),
-    };
+    let mut out = Samples { ray_start: Vec::with_capacity(rays.len() + 1), ..Default::default() };
     out.ray_start.push(0);
-    for part in parts {
-        let base = out.t.len() as u32;
-        out.ray_start.extend(part.ray_start[1..].iter().map(|&k| base + k));
-        out.t.extend_from_slice(&part.t);
-        out.delta.extend_from_slice(&part.delta);
-        out.positions.extend_from_slice(&part.positions);
-        out.directions.extend_from_slice(&part.directions);
-        out.s.extend_from_slice(&part.s);
+    let steps = options.steps.max(1);
+    let inv_steps = 1.0 / steps as f32;
+    for r in 0..rays.len() {
+        let (o, d) = (rays.origins[r], rays.directions[r]);
+        if let Some(ctx) = ray_context(extent, o, d) {
+            let mut t_prev = t_of(&ctx, 0.0);
+            for i in 0..steps {
+                let t_next = t_of(&ctx, (i + 1) as f32 * inv_steps);
+                let xi = if options.stratified { rng.gen::<f32>() } else { 0.5 };
+                let t = t_prev + xi * (t_next - t_prev);
+                let delta = t_next - t_prev;
+                t_prev = t_next;
+                if delta <= 0.0 || t < near {
+                    continue;
+                }
+                let p = axpy(o, t, d);
+                let u = contraction.to_unit(p);
+                if !Contraction::inside(u) {
+                    continue;
+                }
+                if let Some(occ) = occupancy {
+                    if !occ.is_occupied(u) {
+                        continue;
+                    }
+                }
+                out.t.push(t);
+                out.delta.push(delta);
+                out.positions.push(p);
+                out.directions.push(d);
+                out.s.push((i as f32 + xi) * inv_steps);
+            }
+        }
+        out.ray_start.push(out.t.len() as u32);
     }
     out
 }
@@ -458,7 +379,7 @@ pub fn merge_intervals(
 mod tests {
     use super::*;
     use crate::camera::Camera;
-    use rand::{Rng, SeedableRng};
+    use rand::SeedableRng;
 
     #[test]
     fn merged_intervals_partition_the_segments_and_skip_gaps() {
@@ -534,34 +455,6 @@ mod tests {
             }
             assert!(s.t[range].windows(2).all(|w| w[0] < w[1]));
         }
-    }
-
-    #[test]
-    fn a_batch_marches_as_its_rays_one_by_one() {
-        // Several parallel tasks, rays that miss the box, a near plane inside it.
-        let extent = SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] };
-        let cam = Camera::look_at([0.5, 0.3, 2.5], [0.0; 3], [0.0, 1.0, 0.0], 48, 40, 20.0);
-        let rays = RayBatch::full_image(&cam);
-        let contraction = Contraction::new(&extent);
-        let options = MarchOptions { steps: 48, stratified: true };
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
-        let batch = march(&extent, &contraction, None, 2.0, &rays, options, &mut rng);
-        let mut one_by_one_rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
-        let mut missed = 0;
-        for r in 0..rays.len() {
-            let ray = RayBatch { origins: vec![rays.origins[r]], directions: vec![rays.directions[r]] };
-            let one = march(&extent, &contraction, None, 2.0, &ray, options, &mut one_by_one_rng);
-            let range = batch.range(r);
-            missed += usize::from(one.is_empty());
-            assert_eq!(one.t, batch.t[range.clone()], "ray {r}");
-            assert_eq!(one.delta, batch.delta[range.clone()], "ray {r}");
-            assert_eq!(one.positions, batch.positions[range.clone()], "ray {r}");
-            assert_eq!(one.directions, batch.directions[range.clone()], "ray {r}");
-            assert_eq!(one.s, batch.s[range], "ray {r}");
-        }
-        assert!(rays.len() > 2 * MARCH_TASK_RAYS && missed > 0 && missed < rays.len(), "{missed} rays missed");
-        // Both streams end where a ray-by-ray march leaves them.
-        assert_eq!(rng.gen::<u32>(), one_by_one_rng.gen::<u32>());
     }
 
     #[test]
