@@ -393,10 +393,9 @@ fn pass2<const D: usize>(
             .fold(PairAcc::new(D, m), PairAcc::merge);
         loss += acc.loss;
         if symmetric {
-            // The diagonal: zero distances in both kernels, and no gradient (no sign).
-            let (g, t) = (kernel.of_distance(0.0), 1.0 / kernel.epsilon);
-            let s = if t < kernel.cap { t } else { kernel.cap };
-            loss += row_shift.iter().map(|&r| f64::from(s * (g + r))).sum::<f64>();
+            // The diagonal: zero distances, so both kernels are K(0), and no gradient (no sign).
+            let k0 = kernel.of_distance(0.0);
+            loss += row_shift.iter().map(|&r| f64::from(k0 * (k0 + r))).sum::<f64>();
         }
         // Only the first d (real) channels carry gradient.
         for (g, a) in grad_hat[k * d * m..(k + 1) * d * m].iter_mut().zip(&acc.ga) {

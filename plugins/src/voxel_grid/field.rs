@@ -71,6 +71,8 @@ impl VoxelGridField {
         let mut feat = vec![0.0; self.grid.channels];
         let mut basis = vec![0.0; n_sh];
         // Pre-activations first, then each activation over the whole chunk, vectorised.
+        // Outside the grid the density's pre-activation is −∞ (softplus 0); the colour is
+        // zeroed after its sigmoid.
         let mut outside = Vec::new();
         for i in 0..p.len() {
             let corners = self.corners(p[i]);
@@ -84,7 +86,10 @@ impl VoxelGridField {
                         c[i][k] = coef.iter().zip(&basis).map(|(a, b)| a * b).sum();
                     }
                 }
-                None => outside.push(i),
+                None => {
+                    d[i] = f32::NEG_INFINITY;
+                    outside.push(i);
+                }
             }
             if let Some((kept, _)) = tape.as_mut() {
                 kept[i] = corners;
@@ -97,12 +102,12 @@ impl VoxelGridField {
         self.activate_density(d);
         vector_math::sigmoid_in_place(c.as_flattened_mut());
         for i in outside {
-            d[i] = 0.0;
             c[i] = [0.0; 3];
         }
     }
 
-    /// Raw density plus the shift, in place, to density: `softplus(x) / voxel_length`.
+    /// Raw density plus the shift, in place, to density: `softplus(x) / voxel_length` (0 for
+    /// −∞, a sample outside the grid).
     fn activate_density(&self, d: &mut [f32]) {
         vector_math::softplus_in_place(d);
         for v in d {
@@ -132,17 +137,13 @@ impl VoxelGridField {
 impl RadianceField for VoxelGridField {
     fn density(&self, positions: &[Vec3], density: &mut [f32]) {
         positions.par_chunks(CHUNK).zip(density.par_chunks_mut(CHUNK)).for_each(|(p, d)| {
-            let mut outside = Vec::new();
-            for (i, (pi, di)) in p.iter().zip(d.iter_mut()).enumerate() {
-                match self.corners(*pi) {
-                    Some(c) => *di = self.grid.gather_first(&c) + self.shift,
-                    None => outside.push(i),
-                }
+            for (pi, di) in p.iter().zip(d.iter_mut()) {
+                *di = match self.corners(*pi) {
+                    Some(c) => self.grid.gather_first(&c) + self.shift,
+                    None => f32::NEG_INFINITY,
+                };
             }
             self.activate_density(d);
-            for i in outside {
-                d[i] = 0.0;
-            }
         });
     }
 

@@ -73,7 +73,7 @@ pub fn ln_1p(y: f32) -> f32 {
     ln_normal(u) + (y - (u - 1.0)) / u
 }
 
-/// `ln(1 + e^x)`, and `x` itself above 20 (as [`super::activation::softplus`]).
+/// `ln(1 + e^x)`, and `x` itself above 20 (as [`super::activation::softplus`]); 0 for −∞.
 #[inline(always)]
 pub fn softplus(x: f32) -> f32 {
     let s = ln_1p(exp(x.min(20.0)));
@@ -149,6 +149,7 @@ mod tests {
             let want = (1.0 / (1.0 + (-f64::from(x)).exp())) as f32;
             assert!(ulps(sigmoid(x), want) <= 3, "sigmoid({x}) = {} against {want}", sigmoid(x));
         }
+        assert_eq!(softplus(f32::NEG_INFINITY), 0.0);
         let mut xs = vec![-3.0, 0.0, 25.0];
         softplus_in_place(&mut xs);
         assert_eq!(xs, vec![softplus(-3.0), softplus(0.0), 25.0]);
