@@ -52,13 +52,22 @@ impl KeptState {
         kept.iter().map(|&i| self.row_of[i as usize]).collect()
     }
 
-    /// Appends candidate `i`'s state; false when that would exceed the budget.
-    fn push(&mut self, i: usize, row: &[f32]) -> bool {
-        if self.values.len() + self.dim > self.limit {
+    /// Appends the state of the kept candidates `kept` (candidate, row of `group_state`), in
+    /// that order; false, appending nothing, when they would exceed the budget.
+    fn extend(&mut self, kept: &[(u32, u32)], group_state: &[f32]) -> bool {
+        let dim = self.dim;
+        let start = self.values.len();
+        if start + kept.len() * dim > self.limit {
             return false;
         }
-        self.row_of[i] = (self.values.len() / self.dim) as u32;
-        self.values.extend_from_slice(row);
+        for (j, &(i, _)) in kept.iter().enumerate() {
+            self.row_of[i as usize] = (start / dim + j) as u32;
+        }
+        // Rows are copied in parallel: a frozen grid's state is most of what the pass writes.
+        self.values.resize(start + kept.len() * dim, 0.0);
+        self.values[start..].par_chunks_mut(dim).zip(kept.par_iter()).with_min_len(256).for_each(|(dst, &(_, row))| {
+            dst.copy_from_slice(&group_state[row as usize * dim..][..dim]);
+        });
         true
     }
 }
@@ -147,7 +156,7 @@ pub fn density_pass(
             let state_fits = match state.as_mut() {
                 Some(s) => scan.with_state(&mut rays, &mut pass, s, &group_state),
                 None => {
-                    scan.parallel(&mut rays, &mut pass);
+                    scan.parallel(&mut rays, &mut pass, None);
                     true
                 }
             };
@@ -201,9 +210,10 @@ struct WaveScan<'a> {
 }
 
 impl WaveScan<'_> {
-    /// The scan when no state is kept: rays are independent, so they are scanned in parallel,
-    /// each in order, with the same arithmetic as one after another.
-    fn parallel(&self, rays: &mut [RayScan], pass: &mut DensityPass) {
+    /// The scan: rays are independent, so they are scanned in parallel, each in order, with the
+    /// same arithmetic as one after another. With `kept`, each kept candidate and its row of
+    /// the group's values are appended to it, ray after ray.
+    fn parallel(&self, rays: &mut [RayScan], pass: &mut DensityPass, mut kept: Option<&mut Vec<(u32, u32)>>) {
         let WaveScan { group, wave, stop_at, min_weight, values, candidates } = *self;
         // Each group ray's wave: (ray, first candidate, first row in `values`, length).
         let mut spans = Vec::with_capacity(group.len());
@@ -249,14 +259,17 @@ impl WaveScan<'_> {
                 pass.keep[cursor + k] = keep;
                 if keep {
                     pass.skipped_before[cursor + k] = skipped;
+                    if let Some(kept) = kept.as_mut() {
+                        kept.push(((cursor + k) as u32, (row + k) as u32));
+                    }
                 }
             }
             rays[r].cursor = cursor + len;
         }
     }
 
-    /// The scan when the field's state is kept for the kept candidates: one ray after another,
-    /// since the state is appended in that order. Returns whether the state still fits its budget.
+    /// The scan when the field's state is kept for the kept candidates, appended ray after
+    /// ray. Returns whether the state still fits its budget.
     fn with_state(
         &self,
         rays: &mut [RayScan],
@@ -264,29 +277,9 @@ impl WaveScan<'_> {
         state: &mut KeptState,
         group_state: &[f32],
     ) -> bool {
-        let WaveScan { group, wave, stop_at, min_weight, values, candidates } = *self;
-        let dim = state.dim;
-        let mut row = 0;
-        let mut fits = true;
-        for &r in group {
-            let ray = &mut rays[r];
-            let stop = ray.cursor.saturating_add(wave).min(ray_end(candidates, r));
-            for (k, i) in (ray.cursor..stop).enumerate() {
-                if ray.optical > stop_at {
-                    break;
-                }
-                pass.sigma[i] = values[row + k];
-                let (keep, skipped) = scan_candidate(ray, values[row + k], candidates.delta[i], min_weight);
-                pass.keep[i] = keep;
-                if keep {
-                    pass.skipped_before[i] = skipped;
-                    fits &= state.push(i, &group_state[(row + k) * dim..][..dim]);
-                }
-            }
-            row += stop - ray.cursor;
-            ray.cursor = stop;
-        }
-        fits
+        let mut kept = Vec::new();
+        self.parallel(rays, pass, Some(&mut kept));
+        state.extend(&kept, group_state)
     }
 }
 

@@ -27,6 +27,8 @@ use crate::scene::SceneExtent;
 
 /// Rays per parallel marching task.
 const MARCH_CHUNK: usize = 256;
+/// Rays per block of an inference render (see [`render_inference`]).
+const INFERENCE_BLOCK: usize = 1024;
 
 /// How to render.
 #[derive(Debug, Clone, Copy)]
@@ -580,11 +582,18 @@ pub struct ExtraChannels<'a> {
     /// trains the head on exactly those, and it skips the many near-empty samples of a ray.
     pub min_weight: f32,
     /// `[n, dim]` values at the given sample positions.
-    pub eval: &'a dyn Fn(&[Vec3]) -> Vec<f32>,
+    pub eval: &'a (dyn Fn(&[Vec3]) -> Vec<f32> + Sync),
 }
 
 /// Renders many rays in chunks without gradients (evaluation and `sos render`); returns the
 /// per-ray colours and, with `extra`, its per-ray composited channels (`[n_rays, dim]`).
+///
+/// Each chunk of at most `chunk` rays (the memory bound) is cut into blocks of
+/// [`INFERENCE_BLOCK`] rays that run the whole pipeline (march, density pass, colour pass,
+/// compositing) on their own, blocks in parallel: the pipeline's serial steps (joining the
+/// marched parts, filtering, the density pass's bookkeeping) then overlap, and a block's samples
+/// stay in cache between its passes. Rays are independent and nothing is drawn at random, so
+/// the result does not depend on the blocks.
 pub fn render_inference(
     field: &dyn RadianceField,
     ctx: RenderContext,
@@ -595,16 +604,26 @@ pub fn render_inference(
 ) -> (Vec<RayColour>, Vec<f32>) {
     let mut colours = Vec::with_capacity(rays.len());
     let mut extras = Vec::with_capacity(rays.len() * extra.map_or(0, |e| e.dim));
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+    let chunk = chunk.max(1);
     let mut start = 0;
     while start < rays.len() {
         let end = (start + chunk).min(rays.len());
-        let mut r = render(field, ctx, &rays.slice(start, end), options, false, &mut rng);
-        r.composite();
-        if let Some(extra) = extra {
-            extras.extend(r.composite_extra(extra));
+        let blocks: Vec<usize> = (start..end).step_by(INFERENCE_BLOCK).collect();
+        let parts: Vec<(Vec<RayColour>, Vec<f32>)> = blocks
+            .into_par_iter()
+            .map(|first| {
+                let last = (first + INFERENCE_BLOCK).min(end);
+                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+                let mut r = render(field, ctx, &rays.slice(first, last), options, false, &mut rng);
+                r.composite();
+                let channels = extra.map(|e| r.composite_extra(e)).unwrap_or_default();
+                (r.colours, channels)
+            })
+            .collect();
+        for (c, e) in parts {
+            colours.extend(c);
+            extras.extend(e);
         }
-        colours.extend(r.colours);
         start = end;
     }
     (colours, extras)
@@ -801,6 +820,41 @@ mod tests {
             }
         }
         assert!(hits > 20 && dropped > 0.0, "{hits} hits, {dropped} weight dropped");
+    }
+
+    /// An inference render cut into chunks and parallel blocks gives each ray what one render
+    /// of the whole batch gives it, bit for bit, extra channels included.
+    #[test]
+    fn inference_blocks_render_as_one_batch() {
+        let field = Ball::new(None, false);
+        let extent = SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] };
+        let contraction = Contraction::new(&extent);
+        // More rays than two blocks, the last one partial.
+        let cam = Camera::look_at([0.0, 0.0, 3.0], [0.0; 3], [0.0, 1.0, 0.0], 57, 41, 40.0);
+        let rays = RayBatch::full_image(&cam);
+        assert!(rays.len() > 2 * INFERENCE_BLOCK && rays.len() % INFERENCE_BLOCK != 0);
+        let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
+        let options = RenderOptions {
+            march: MarchOptions { steps: 64, stratified: false },
+            early_stop: 1e-4,
+            min_weight: 1e-3,
+            memory: MemoryBudget::unlimited(),
+        };
+        let eval = |p: &[Vec3]| p.iter().flat_map(|p| [1.0, p[2]]).collect::<Vec<f32>>();
+        let extra = ExtraChannels { dim: 2, min_weight: 1e-3, eval: &eval };
+        let mut whole = render(&field, ctx, &rays, options, false, &mut rand_chacha::ChaCha8Rng::seed_from_u64(0));
+        whole.composite();
+        let whole_extra = whole.composite_extra(&extra);
+        let bits = |c: &[RayColour]| c.iter().flat_map(|c| c.rgb.map(f32::to_bits)).collect::<Vec<_>>();
+        let float_bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        for chunk in [rays.len(), 1500, 700] {
+            let (colours, channels) = render_inference(&field, ctx, &rays, options, chunk, Some(&extra));
+            assert_eq!(bits(&colours), bits(&whole.colours), "chunk {chunk}: colours differ");
+            let depth = |c: &[RayColour]| c.iter().map(|c| c.depth.to_bits()).collect::<Vec<_>>();
+            assert_eq!(depth(&colours), depth(&whole.colours), "chunk {chunk}: depths differ");
+            assert_eq!(float_bits(&channels), float_bits(&whole_extra), "chunk {chunk}: extra channels differ");
+        }
+        assert!(whole.colours.iter().any(|c| c.acc > 0.5), "the ball is in view");
     }
 
     /// A frozen render keeps the segmentation input of exactly its surviving samples, and
