@@ -832,7 +832,7 @@ mod tests {
         // More rays than two blocks, the last one partial.
         let cam = Camera::look_at([0.0, 0.0, 3.0], [0.0; 3], [0.0, 1.0, 0.0], 57, 41, 40.0);
         let rays = RayBatch::full_image(&cam);
-        assert!(rays.len() > 2 * INFERENCE_BLOCK && rays.len() % INFERENCE_BLOCK != 0);
+        assert!(rays.len() > 2 * INFERENCE_BLOCK && !rays.len().is_multiple_of(INFERENCE_BLOCK));
         let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
         let options = RenderOptions {
             march: MarchOptions { steps: 64, stratified: false },
