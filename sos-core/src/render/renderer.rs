@@ -257,6 +257,27 @@ fn render_impl(
     rng: &mut impl Rng,
 ) -> Rendered {
     let timer = std::time::Instant::now();
+    let prune = options.early_stop > 0.0 || options.min_weight > 0.0;
+    let keeps_state = !record && plain::density_state_dim(field) > 0 && options.memory.density_state() > 0;
+    if prune && !keeps_state && plain::hierarchical(field).is_none() {
+        let (samples, pruned) = prune_in_blocks(field, ctx, rays, options, rng);
+        let seg_limits = SegLimits::new(field, pruned.candidates, seg_budget);
+        let t_filter = timer.elapsed().as_secs_f64();
+        let (density, rgb, tape, seg_input) = evaluate(field, &samples, record, seg_limits, buffers);
+        let timing = RenderTiming { forward: timer.elapsed().as_secs_f64() - t_filter, kept: samples.len(), ..pruned };
+        return Rendered {
+            samples,
+            density,
+            rgb,
+            weights: Vec::new(),
+            colours: Vec::new(),
+            tape,
+            n_candidates: pruned.candidates,
+            coarse: None,
+            seg_input,
+            timing,
+        };
+    }
     let (candidates, coarse) = match plain::hierarchical(field) {
         Some(h) => propose(field, ctx, rays, options, h, record, rng),
         None => (march_parallel(ctx, rays, options.march, rng), None),
@@ -264,7 +285,6 @@ fn render_impl(
     let t_march = timer.elapsed().as_secs_f64();
     let n_candidates = candidates.len();
     let seg_limits = SegLimits::new(field, n_candidates, seg_budget);
-    let prune = options.early_stop > 0.0 || options.min_weight > 0.0;
     let (samples, (density, rgb, tape, seg_input), timing) = if !prune {
         // Nothing to decide from density alone: skip the density pass (for network fields it
         // costs nearly as much as the full pass).
@@ -430,6 +450,72 @@ fn chunk_seeds(n_chunks: usize, stratified: bool, rng: &mut impl Rng) -> Vec<u64
     }
 }
 
+/// The samples a pruned render evaluates, found block by block: each block of
+/// [`MARCH_CHUNK`] rays is marched (with the jitter stream [`march_parallel`] would give it),
+/// run through the density pass and filtered on its own, blocks in parallel, so that these
+/// steps' serial parts overlap. Each ray's decisions depend on that ray alone, so the samples
+/// are those of the whole batch's passes. Returns them with the counts and the wall time of
+/// the three steps (shared out by the time the blocks spent in each).
+fn prune_in_blocks(
+    field: &dyn RadianceField,
+    ctx: RenderContext,
+    rays: &RayBatch,
+    options: RenderOptions,
+    rng: &mut impl Rng,
+) -> (Samples, RenderTiming) {
+    let timer = std::time::Instant::now();
+    let n_chunks = rays.len().div_ceil(MARCH_CHUNK);
+    let seeds = chunk_seeds(n_chunks, options.march.stratified, rng);
+    let parts: Vec<(Samples, usize, usize, [f64; 3])> = (0..n_chunks)
+        .into_par_iter()
+        .map(|c| {
+            let clock = std::time::Instant::now();
+            let (start, end) = (c * MARCH_CHUNK, ((c + 1) * MARCH_CHUNK).min(rays.len()));
+            let mut local = rand_chacha::ChaCha8Rng::seed_from_u64(seeds[c]);
+            let candidates = sampler::march(
+                ctx.extent,
+                ctx.contraction,
+                ctx.occupancy,
+                ctx.near,
+                &rays.slice(start, end),
+                options.march,
+                &mut local,
+            );
+            let t_march = clock.elapsed().as_secs_f64();
+            let pass = density_pass(field, &candidates, options.early_stop, options.min_weight, 0, Vec::new());
+            let t_density = clock.elapsed().as_secs_f64();
+            let (mut samples, kept) = candidates.filter(|i| pass.keep[i]);
+            if options.min_weight > 0.0 {
+                samples.skipped_tau = kept.iter().map(|&i| pass.skipped_before[i as usize]).collect();
+            }
+            let times = [t_march, t_density - t_march, clock.elapsed().as_secs_f64() - t_density];
+            (samples, candidates.len(), pass.evaluated, times)
+        })
+        .collect();
+    let wall = timer.elapsed().as_secs_f64();
+    let mut busy = [0.0f64; 3];
+    let (mut candidates, mut evaluated) = (0, 0);
+    for (_, c, e, times) in &parts {
+        candidates += c;
+        evaluated += e;
+        for (b, t) in busy.iter_mut().zip(times) {
+            *b += t;
+        }
+    }
+    let share = wall / busy.iter().sum::<f64>().max(f64::MIN_POSITIVE);
+    let samples = concat(parts.into_iter().map(|p| p.0).collect());
+    let timing = RenderTiming {
+        march: busy[0] * share,
+        density: busy[1] * share,
+        filter: busy[2] * share,
+        forward: 0.0,
+        candidates,
+        evaluated,
+        kept: samples.len(),
+    };
+    (samples, timing)
+}
+
 fn march_parallel(ctx: RenderContext, rays: &RayBatch, options: MarchOptions, rng: &mut impl Rng) -> Samples {
     let n_chunks = rays.len().div_ceil(MARCH_CHUNK);
     let seeds = chunk_seeds(n_chunks, options.stratified, rng);
@@ -452,15 +538,18 @@ fn march_parallel(ctx: RenderContext, rays: &RayBatch, options: MarchOptions, rn
     concat(parts)
 }
 
+/// The samples of consecutive ray blocks as one batch; `skipped_tau` is joined when the blocks
+/// have it.
 fn concat(parts: Vec<Samples>) -> Samples {
     let total: usize = parts.iter().map(|p| p.len()).sum();
+    let skipped = parts.iter().any(|p| !p.skipped_tau.is_empty());
     let mut out = Samples {
         ray_start: vec![0],
         t: Vec::with_capacity(total),
         delta: Vec::with_capacity(total),
         positions: Vec::with_capacity(total),
         directions: Vec::with_capacity(total),
-        skipped_tau: Vec::new(),
+        skipped_tau: Vec::with_capacity(if skipped { total } else { 0 }),
         s: Vec::with_capacity(total),
     };
     for p in parts {
@@ -470,6 +559,7 @@ fn concat(parts: Vec<Samples>) -> Samples {
         out.delta.extend(p.delta);
         out.positions.extend(p.positions);
         out.directions.extend(p.directions);
+        out.skipped_tau.extend(p.skipped_tau);
         out.s.extend(p.s);
     }
     out
@@ -911,6 +1001,39 @@ mod tests {
                 assert_eq!(same, (&kept.samples.t, &kept.density, &kept.rgb, seg));
                 buffers.recycle(&mut s);
             }
+        }
+    }
+
+    /// Pruning block by block (a field without kept state) places, keeps and evaluates the
+    /// same samples as the whole batch's passes (the same field keeping its state), with
+    /// stratified jitter too.
+    #[test]
+    fn pruning_in_blocks_keeps_what_the_whole_batch_keeps() {
+        let extent = SceneExtent::Bounded { min: [-1.0; 3], max: [1.0; 3] };
+        let contraction = Contraction::new(&extent);
+        let cam = Camera::look_at([0.0, 0.0, 3.0], [0.0; 3], [0.0, 1.0, 0.0], 57, 41, 40.0);
+        let rays = RayBatch::full_image(&cam);
+        assert!(rays.len() > 4 * MARCH_CHUNK);
+        let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
+        for stratified in [false, true] {
+            let options = RenderOptions {
+                march: MarchOptions { steps: 64, stratified },
+                early_stop: 1e-4,
+                min_weight: 1e-3,
+                memory: MemoryBudget::unlimited(),
+            };
+            let rng = || rand_chacha::ChaCha8Rng::seed_from_u64(7);
+            let blocks = render(&Ball::new(None, false), ctx, &rays, options, false, &mut rng());
+            let stateful = Ball::new(None, true);
+            let whole = render(&stateful, ctx, &rays, options, false, &mut rng());
+            assert!(stateful.from_state.load(Ordering::Relaxed) > 0, "the whole batch's passes ran");
+            let (a, b) = (&blocks.samples, &whole.samples);
+            assert!(a.len() > 100 && !a.skipped_tau.is_empty(), "{} samples kept", a.len());
+            assert_eq!((&a.ray_start, &a.t, &a.delta, &a.positions), (&b.ray_start, &b.t, &b.delta, &b.positions));
+            assert_eq!((&a.skipped_tau, &a.s), (&b.skipped_tau, &b.s));
+            assert_eq!((&blocks.density, &blocks.rgb), (&whole.density, &whole.rgb));
+            let counts = |t: &RenderTiming| (t.candidates, t.evaluated, t.kept);
+            assert_eq!(counts(&blocks.timing), counts(&whole.timing));
         }
     }
 
