@@ -265,18 +265,7 @@ fn render_impl(
         let t_filter = timer.elapsed().as_secs_f64();
         let (density, rgb, tape, seg_input) = evaluate(field, &samples, record, seg_limits, buffers);
         let timing = RenderTiming { forward: timer.elapsed().as_secs_f64() - t_filter, kept: samples.len(), ..pruned };
-        return Rendered {
-            samples,
-            density,
-            rgb,
-            weights: Vec::new(),
-            colours: Vec::new(),
-            tape,
-            n_candidates: pruned.candidates,
-            coarse: None,
-            seg_input,
-            timing,
-        };
+        return Rendered::uncomposited(samples, (density, rgb, tape, seg_input), None, timing);
     }
     let (candidates, coarse) = match plain::hierarchical(field) {
         Some(h) => propose(field, ctx, rays, options, h, record, rng),
@@ -331,18 +320,7 @@ fn render_impl(
         };
         (samples, out, timing)
     };
-    Rendered {
-        samples,
-        density,
-        rgb,
-        weights: Vec::new(),
-        colours: Vec::new(),
-        tape,
-        n_candidates,
-        coarse,
-        seg_input,
-        timing,
-    }
+    Rendered::uncomposited(samples, (density, rgb, tape, seg_input), coarse, timing)
 }
 
 /// The proposal pass of a [`Hierarchical`] field: returns the fine candidates (proposal and
@@ -566,6 +544,28 @@ fn concat(parts: Vec<Samples>) -> Samples {
 }
 
 impl Rendered {
+    /// The field's values at `samples` (density, colour, tape, segmentation input), not yet
+    /// composited.
+    fn uncomposited(
+        samples: Samples,
+        (density, rgb, tape, seg_input): (Vec<f32>, Vec<[f32; 3]>, FieldTape, Vec<f32>),
+        coarse: Option<Box<Rendered>>,
+        timing: RenderTiming,
+    ) -> Rendered {
+        Rendered {
+            samples,
+            density,
+            rgb,
+            weights: Vec::new(),
+            colours: Vec::new(),
+            tape,
+            n_candidates: timing.candidates,
+            coarse,
+            seg_input,
+            timing,
+        }
+    }
+
     /// The samples of ray `r` as the compositing kernel sees them.
     fn ray_samples<'a>(&'a self, r: usize, extra: &'a [f32], d_extra: usize) -> RaySamples<'a> {
         let range = self.samples.range(r);
