@@ -679,7 +679,7 @@ pub struct ExtraChannels<'a> {
 /// per-ray colours and, with `extra`, its per-ray composited channels (`[n_rays, dim]`).
 ///
 /// Each chunk of at most `chunk` rays (the memory bound) is cut into blocks of
-/// [`INFERENCE_BLOCK`] rays that run the whole pipeline (march, density pass, colour pass,
+/// 1024 rays that run the whole pipeline (march, density pass, colour pass,
 /// compositing) on their own, blocks in parallel: the pipeline's serial steps (joining the
 /// marched parts, filtering, the density pass's bookkeeping) then overlap, and a block's samples
 /// stay in cache between its passes. Rays are independent and nothing is drawn at random, so
