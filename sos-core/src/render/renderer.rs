@@ -18,7 +18,7 @@ use crate::plugin::field::{plain, Hierarchical};
 use crate::plugin::{FieldTape, RadianceField};
 use crate::render::composite::{self, RayColour, RayGrad, RaySamples};
 use crate::render::contraction::Contraction;
-use crate::render::density_pass::{density_pass, KeptState};
+use crate::render::density_pass::{density_pass, DensityPass, KeptState};
 use crate::render::memory_budget::MemoryBudget;
 use crate::render::occupancy::OccupancyGrid;
 use crate::render::rays::RayBatch;
@@ -295,10 +295,7 @@ fn render_impl(
         let mut pass =
             density_pass(field, &candidates, options.early_stop, options.min_weight, state_budget, state_buffer);
         let t_density = timer.elapsed().as_secs_f64();
-        let (mut samples, kept) = candidates.filter(|i| pass.keep[i]);
-        if options.min_weight > 0.0 {
-            samples.skipped_tau = kept.iter().map(|&i| pass.skipped_before[i as usize]).collect();
-        }
+        let (samples, kept) = kept_samples(&candidates, &pass, options.min_weight);
         let t_filter = timer.elapsed().as_secs_f64();
         let out = match pass.state.take() {
             Some(state) => {
@@ -448,24 +445,11 @@ fn prune_in_blocks(
         .into_par_iter()
         .map(|c| {
             let clock = std::time::Instant::now();
-            let (start, end) = (c * MARCH_CHUNK, ((c + 1) * MARCH_CHUNK).min(rays.len()));
-            let mut local = rand_chacha::ChaCha8Rng::seed_from_u64(seeds[c]);
-            let candidates = sampler::march(
-                ctx.extent,
-                ctx.contraction,
-                ctx.occupancy,
-                ctx.near,
-                &rays.slice(start, end),
-                options.march,
-                &mut local,
-            );
+            let candidates = march_chunk(ctx, rays, c, options.march, seeds[c]);
             let t_march = clock.elapsed().as_secs_f64();
             let pass = density_pass(field, &candidates, options.early_stop, options.min_weight, 0, Vec::new());
             let t_density = clock.elapsed().as_secs_f64();
-            let (mut samples, kept) = candidates.filter(|i| pass.keep[i]);
-            if options.min_weight > 0.0 {
-                samples.skipped_tau = kept.iter().map(|&i| pass.skipped_before[i as usize]).collect();
-            }
+            let (samples, _) = kept_samples(&candidates, &pass, options.min_weight);
             let times = [t_march, t_density - t_march, clock.elapsed().as_secs_f64() - t_density];
             (samples, candidates.len(), pass.evaluated, times)
         })
@@ -497,39 +481,37 @@ fn prune_in_blocks(
 fn march_parallel(ctx: RenderContext, rays: &RayBatch, options: MarchOptions, rng: &mut impl Rng) -> Samples {
     let n_chunks = rays.len().div_ceil(MARCH_CHUNK);
     let seeds = chunk_seeds(n_chunks, options.stratified, rng);
-    let parts: Vec<Samples> = (0..n_chunks)
-        .into_par_iter()
-        .map(|c| {
-            let (start, end) = (c * MARCH_CHUNK, ((c + 1) * MARCH_CHUNK).min(rays.len()));
-            let mut local = rand_chacha::ChaCha8Rng::seed_from_u64(seeds[c]);
-            sampler::march(
-                ctx.extent,
-                ctx.contraction,
-                ctx.occupancy,
-                ctx.near,
-                &rays.slice(start, end),
-                options,
-                &mut local,
-            )
-        })
-        .collect();
+    let parts: Vec<Samples> =
+        (0..n_chunks).into_par_iter().map(|c| march_chunk(ctx, rays, c, options, seeds[c])).collect();
     concat(parts)
+}
+
+/// Candidates of the `c`-th [`MARCH_CHUNK`] rays, jittered (when stratified) by their own
+/// stream from `seed`.
+fn march_chunk(ctx: RenderContext, rays: &RayBatch, c: usize, options: MarchOptions, seed: u64) -> Samples {
+    let (start, end) = (c * MARCH_CHUNK, ((c + 1) * MARCH_CHUNK).min(rays.len()));
+    let mut local = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    sampler::march(ctx.extent, ctx.contraction, ctx.occupancy, ctx.near, &rays.slice(start, end), options, &mut local)
+}
+
+/// The candidates a density pass kept, and their indices among the candidates; with a weight
+/// threshold, each with the optical depth dropped before it.
+fn kept_samples(candidates: &Samples, pass: &DensityPass, min_weight: f32) -> (Samples, Vec<u32>) {
+    let (mut samples, kept) = candidates.filter(|i| pass.keep[i]);
+    if min_weight > 0.0 {
+        samples.skipped_tau = kept.iter().map(|&i| pass.skipped_before[i as usize]).collect();
+    }
+    (samples, kept)
 }
 
 /// The samples of consecutive ray blocks as one batch; `skipped_tau` is joined when the blocks
 /// have it.
 fn concat(parts: Vec<Samples>) -> Samples {
     let total: usize = parts.iter().map(|p| p.len()).sum();
-    let skipped = parts.iter().any(|p| !p.skipped_tau.is_empty());
-    let mut out = Samples {
-        ray_start: vec![0],
-        t: Vec::with_capacity(total),
-        delta: Vec::with_capacity(total),
-        positions: Vec::with_capacity(total),
-        directions: Vec::with_capacity(total),
-        skipped_tau: Vec::with_capacity(if skipped { total } else { 0 }),
-        s: Vec::with_capacity(total),
-    };
+    let mut out = Samples::with_capacity(parts.iter().map(|p| p.n_rays()).sum(), total);
+    if parts.iter().any(|p| !p.skipped_tau.is_empty()) {
+        out.skipped_tau.reserve(total);
+    }
     for p in parts {
         let base = out.t.len() as u32;
         out.ray_start.extend(p.ray_start[1..].iter().map(|s| s + base));

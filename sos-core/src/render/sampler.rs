@@ -57,22 +57,27 @@ impl Samples {
         self.ray_start[r] as usize..self.ray_start[r + 1] as usize
     }
 
-    /// Keeps the samples for which `keep(index)` is true.
-    pub fn filter(&self, mut keep: impl FnMut(usize) -> bool) -> (Samples, Vec<u32>) {
-        // Room for every sample, so that nothing is copied while the vectors grow (only the
-        // pages written are committed).
-        let n = self.len();
-        let mut out = Samples {
-            ray_start: Vec::with_capacity(self.ray_start.len()),
+    /// No samples yet (one ray offset, 0), with room for `n` samples of `n_rays` rays: vectors
+    /// filled up to that never grow (and copy), and only the pages written are committed.
+    /// `skipped_tau` gets no room (most batches have none).
+    pub fn with_capacity(n_rays: usize, n: usize) -> Samples {
+        let mut ray_start = Vec::with_capacity(n_rays + 1);
+        ray_start.push(0);
+        Samples {
+            ray_start,
             t: Vec::with_capacity(n),
             delta: Vec::with_capacity(n),
             positions: Vec::with_capacity(n),
             directions: Vec::with_capacity(n),
             skipped_tau: Vec::new(),
-            s: Vec::with_capacity(if self.s.is_empty() { 0 } else { n }),
-        };
-        let mut kept = Vec::with_capacity(n);
-        out.ray_start.push(0);
+            s: Vec::with_capacity(n),
+        }
+    }
+
+    /// Keeps the samples for which `keep(index)` is true.
+    pub fn filter(&self, mut keep: impl FnMut(usize) -> bool) -> (Samples, Vec<u32>) {
+        let mut out = Samples::with_capacity(self.n_rays(), self.len());
+        let mut kept = Vec::with_capacity(self.len());
         for r in 0..self.n_rays() {
             for i in self.range(r) {
                 if keep(i) {
@@ -218,45 +223,15 @@ pub fn march(
     options: MarchOptions,
     rng: &mut impl Rng,
 ) -> Samples {
-    // One loop per spacing, so that the map from s to a distance is inlined into it.
-    match spacing_for(extent) {
-        Spacing::Linear => march_spaced(t_linear, extent, contraction, occupancy, near, rays, options, rng),
-        Spacing::Disparity { .. } => {
-            march_spaced(t_disparity, extent, contraction, occupancy, near, rays, options, rng)
-        }
-        Spacing::SphereThenDisparity { .. } => {
-            march_spaced(t_sphere, extent, contraction, occupancy, near, rays, options, rng)
-        }
-    }
-}
-
-/// [`march`] with `t_of` mapping the normalised position s ∈ [0, 1] along a ray to a distance.
-#[allow(clippy::too_many_arguments)]
-#[inline(always)]
-fn march_spaced(
-    t_of: impl Fn(&RayCtx, f32) -> f32,
-    extent: &SceneExtent,
-    contraction: &Contraction,
-    occupancy: Option<&OccupancyGrid>,
-    near: f32,
-    rays: &RayBatch,
-    options: MarchOptions,
-    rng: &mut impl Rng,
-) -> Samples {
-    let steps = options.steps.max(1);
-    // Room for every candidate: only the pages written are ever committed, and the vectors
-    // never grow (and copy) while the rays are marched.
-    let most = rays.len() * steps;
-    let mut out = Samples {
-        ray_start: Vec::with_capacity(rays.len() + 1),
-        t: Vec::with_capacity(most),
-        delta: Vec::with_capacity(most),
-        positions: Vec::with_capacity(most),
-        directions: Vec::with_capacity(most),
-        skipped_tau: Vec::new(),
-        s: Vec::with_capacity(most),
+    // Maps the normalised position s ∈ [0, 1] along a ray to a distance.
+    let t_of: fn(&RayCtx, f32) -> f32 = match spacing_for(extent) {
+        Spacing::Linear => t_linear,
+        Spacing::Disparity { .. } => t_disparity,
+        Spacing::SphereThenDisparity { .. } => t_sphere,
     };
-    out.ray_start.push(0);
+    let steps = options.steps.max(1);
+    // Room for every candidate.
+    let mut out = Samples::with_capacity(rays.len(), rays.len() * steps);
     let inv_steps = 1.0 / steps as f32;
     for r in 0..rays.len() {
         let (o, d) = (rays.origins[r], rays.directions[r]);
