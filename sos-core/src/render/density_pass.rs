@@ -183,8 +183,8 @@ fn ray_end(candidates: &Samples, r: usize) -> usize {
 #[inline]
 fn scan_candidate(ray: &mut RayScan, sigma: f32, delta: f32, min_weight: f32) -> (bool, f32) {
     let tau = sigma * delta;
-    let w = -(-tau).exp_m1() * (-ray.optical).exp();
-    let keep = min_weight <= 0.0 || w > min_weight;
+    // Without a threshold every candidate is kept: its weight (two exponentials) is not needed.
+    let keep = min_weight <= 0.0 || -(-tau).exp_m1() * (-ray.optical).exp() > min_weight;
     let skipped = if keep {
         std::mem::take(&mut ray.skipped)
     } else {
