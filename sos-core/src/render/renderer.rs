@@ -919,10 +919,10 @@ mod tests {
         let whole_extra = whole.composite_extra(&extra);
         let bits = |c: &[RayColour]| c.iter().flat_map(|c| c.rgb.map(f32::to_bits)).collect::<Vec<_>>();
         let float_bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        let depth = |c: &[RayColour]| c.iter().map(|c| c.depth.to_bits()).collect::<Vec<_>>();
         for chunk in [rays.len(), 1500, 700] {
             let (colours, channels) = render_inference(&field, ctx, &rays, options, chunk, Some(&extra));
             assert_eq!(bits(&colours), bits(&whole.colours), "chunk {chunk}: colours differ");
-            let depth = |c: &[RayColour]| c.iter().map(|c| c.depth.to_bits()).collect::<Vec<_>>();
             assert_eq!(depth(&colours), depth(&whole.colours), "chunk {chunk}: depths differ");
             assert_eq!(float_bits(&channels), float_bits(&whole_extra), "chunk {chunk}: extra channels differ");
         }
