@@ -49,6 +49,18 @@ pub trait FeatureExtractor: Send + Sync {
     /// cannot run (e.g. ONNX Runtime rejects the batch), never with a partial result.
     fn extract(&self, images: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError>;
 
+    /// Extracts features of patches cut from larger views: `views[i]` is the whole view that
+    /// `patches[i]` was cut from, sampled at the patch's pixel spacing (so a patch cell and a
+    /// view cell of the same size cover the same area). Stage 2 shows the teacher patches
+    /// this way. An extractor whose features compare a cell with the rest of its image (a
+    /// background prior such as distinctness from the image border) compares with the view
+    /// here: a patch's border is not the view's background, and a per-patch prior marks
+    /// every patch's centre as the object. The default ignores the views.
+    fn extract_in_views(&self, patches: &[RgbImage], views: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError> {
+        let _ = views;
+        self.extract(patches)
+    }
+
     /// A string that changes whenever the features would change (kind, settings, weights
     /// hash); used as the teacher-feature cache key.
     fn identity(&self) -> String;

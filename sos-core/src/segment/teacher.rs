@@ -66,8 +66,9 @@ impl Teacher {
                     TeacherSource::Captured => captured_patch(scene, &patches[i]),
                 })
                 .collect();
+            let views: Vec<RgbImage> = missing.iter().map(|&i| strided_view(scene, &patches[i])).collect();
             let started = Instant::now();
-            let feats = self.extractor.extract(&inputs).and_then(|f| {
+            let feats = self.extractor.extract_in_views(&inputs, &views).and_then(|f| {
                 if f.len() == inputs.len() {
                     Ok(f)
                 } else {
@@ -112,6 +113,22 @@ pub fn captured_patch(scene: &Scene, patch: &Patch) -> RgbImage {
         for b in 0..n {
             let (col, row) = patch.grid.pixel(a as u32, b as u32);
             out.set_pixel(b, a, img.pixel(col as usize, row as usize));
+        }
+    }
+    out
+}
+
+/// The photograph a patch was cut from, sampled at the patch's stride on the patch's pixel
+/// lattice (the extractor's view of the patch's surroundings at the patch's scale).
+pub fn strided_view(scene: &Scene, patch: &Patch) -> RgbImage {
+    let img = &scene.views[patch.view].image;
+    let s = patch.grid.stride.max(1) as usize;
+    let (c0, r0) = (patch.grid.col0 as usize % s, patch.grid.row0 as usize % s);
+    let (w, h) = (img.width.saturating_sub(c0).div_ceil(s), img.height.saturating_sub(r0).div_ceil(s));
+    let mut out = RgbImage::new(w, h);
+    for y in 0..h {
+        for x in 0..w {
+            out.set_pixel(x, y, img.pixel(c0 + x * s, r0 + y * s));
         }
     }
     out
@@ -163,6 +180,54 @@ mod tests {
         let again = [patch(2, 4), patch(0, 0), patch(0, 8)];
         assert_eq!(t.features(&scene, &again, &[], true).unwrap().len(), 3);
         assert_eq!((t.hits, t.misses), (2, 4));
+    }
+
+    /// Answers each patch with one cell holding the size of the view it was given.
+    struct ViewSizes;
+
+    impl FeatureExtractor for ViewSizes {
+        fn extract(&self, images: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError> {
+            self.extract_in_views(images, &vec![RgbImage::new(0, 0); images.len()])
+        }
+
+        fn extract_in_views(&self, _: &[RgbImage], views: &[RgbImage]) -> Result<Vec<FeatureMap>, ExtractError> {
+            let size = |v: &RgbImage| vec![v.width as f32, v.height as f32];
+            let map = |v| FeatureMap { channels: 2, height: 1, width: 1, data: size(v), cls: size(v), saliency: None };
+            Ok(views.iter().map(map).collect())
+        }
+
+        fn identity(&self) -> String {
+            "view-sizes/v1".into()
+        }
+    }
+
+    #[test]
+    fn the_strided_view_holds_the_patch_on_its_lattice() {
+        let mut scene = blank_scene(2, 17, 9);
+        for (i, view) in scene.views.iter_mut().enumerate() {
+            for r in 0..9 {
+                for c in 0..17 {
+                    view.image.set_pixel(c, r, [c as f32, r as f32, i as f32]);
+                }
+            }
+        }
+        let p = Patch { view: 1, grid: PatchGrid { col0: 5, row0: 2, size: 3, stride: 3 } };
+        let view = strided_view(&scene, &p);
+        // Columns 2, 5, ..., 14 and rows 2, 5, 8 of view 1.
+        assert_eq!((view.width, view.height), (5, 3));
+        assert_eq!(view.pixel(0, 0), [2.0, 2.0, 1.0]);
+        assert_eq!(view.pixel(4, 2), [14.0, 8.0, 1.0]);
+        let patch = captured_patch(&scene, &p);
+        for a in 0..3 {
+            for b in 0..3 {
+                assert_eq!(patch.pixel(b, a), view.pixel(1 + b, a), "ray ({a}, {b})");
+            }
+        }
+        // The teacher gives the extractor each patch's strided view.
+        let mut t = Teacher::new(Box::new(ViewSizes), TeacherSource::Captured, false);
+        let unit = Patch { view: 0, grid: PatchGrid { col0: 0, row0: 0, size: 4, stride: 1 } };
+        let maps = t.features(&scene, &[p, unit], &[], true).unwrap();
+        assert_eq!((maps[0].data.as_slice(), maps[1].data.as_slice()), ([5.0, 3.0].as_slice(), [17.0, 9.0].as_slice()));
     }
 
     #[test]
