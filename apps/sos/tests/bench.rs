@@ -185,6 +185,47 @@ fn a_matrix_runs_reports_caches_and_merges_from_shards() {
 }
 
 #[test]
+fn runs_that_differ_only_after_stage_one_share_it_with_the_same_result() {
+    let dir = temp_dir("shared-stage1");
+    write_bench(&dir, "");
+    // `--list` counts them: two seeds of `default` and `short` on the scene that exists.
+    let list = sos(&["bench", "bench.toml", "--list"], &dir);
+    assert!(list.status.success(), "{}", text(&list.stderr));
+    let last = text(&list.stdout).lines().last().unwrap_or_default().to_string();
+    assert_eq!(last, "4 runs to run here, 2 of them with a stage 1 of their own (the others share one)");
+    let out = sos(&["bench", "bench.toml", "--out", "together"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    // `short` changes only stage 2's steps: it starts from `default`'s stage 1 (which runs
+    // first) and counts that stage's time and curve as its own.
+    let source = json(&dir.join("together/runs/tiny__default__s0.json"));
+    let shared = json(&dir.join("together/runs/tiny__short__s0.json"));
+    let notes = shared["outcome"]["notes"].to_string();
+    assert!(notes.contains("stage 1 shared with `tiny__default__s0`"), "{notes}");
+    assert_eq!(shared["outcome"]["curves"]["stage1"], source["outcome"]["curves"]["stage1"]);
+    assert_eq!(shared["outcome"]["timing"]["stage1"], source["outcome"]["timing"]["stage1"]);
+    assert!(shared["outcome"]["stage1"].is_null() && source["outcome"]["stage1"].is_object(), "{shared:#}");
+    // Each run alone (one shard per run) runs its own stage 1, with the same metrics.
+    let runs = 8;
+    let mut shards = Vec::new();
+    for i in 0..runs {
+        let (shard, out_dir) = (format!("{i}/{runs}"), format!("alone{i}"));
+        let out = sos(&["bench", "bench.toml", "--shard", &shard, "--out", &out_dir], &dir);
+        assert!(out.status.success(), "{}", text(&out.stderr));
+        shards.push(out_dir);
+    }
+    let mut merge: Vec<&str> = vec!["bench", "merge"];
+    merge.extend(shards.iter().map(String::as_str));
+    merge.extend(["--out", "alone"]);
+    let merged = sos(&merge, &dir);
+    assert!(merged.status.success(), "{}", text(&merged.stderr));
+    let alone = json(&dir.join("alone/runs/tiny__short__s0.json"));
+    assert!(!alone["outcome"]["notes"].to_string().contains("shared"), "{alone:#}");
+    let diff = sos(&["bench", "diff", "alone", "together"], &dir);
+    assert!(diff.status.success(), "{}{}", text(&diff.stdout), text(&diff.stderr));
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
 fn an_unknown_key_path_fails_before_any_run() {
     let dir = temp_dir("badpath");
     write_bench(&dir, "[[sweep]]\nname = \"typo\"\nvary = { \"segment.stpes\" = [1, 2] }\n");

@@ -6,7 +6,7 @@ use anyhow::{anyhow, bail};
 use clap::{Args, Subcommand};
 
 pub use super::exec::ExecArgs;
-use super::matrix::{plan, shard};
+use super::matrix::{plan, shard, PlannedRun};
 use super::runner::{run_all, BenchMeta};
 use super::spec::BenchFile;
 use super::{merge, record, report};
@@ -140,6 +140,8 @@ fn run_file(
                 r.skip.as_ref().map_or(String::new(), |s| format!("  skipped: {s}"))
             );
         }
+        let (to_run, stage1s) = stage1_count(&runs);
+        println!("{to_run} runs to run here, {stage1s} of them with a stage 1 of their own (the others share one)");
         return Ok(());
     }
     let meta = BenchMeta {
@@ -176,4 +178,27 @@ fn run_file(
         );
     }
     Ok(())
+}
+
+/// Runs that would run (not skipped, no other run with the same config) and how many of them
+/// train a stage 1 of their own when run in order: the rest share the stage 1 of an earlier
+/// run with the same stage-1 settings whose stage 2 leaves the field frozen (as the runner
+/// decides, given that every run finishes).
+fn stage1_count(runs: &[PlannedRun]) -> (usize, usize) {
+    let mut configs = std::collections::HashSet::new();
+    let mut sources = std::collections::HashSet::new();
+    let (mut to_run, mut stage1s) = (0, 0);
+    for r in runs.iter().filter(|r| r.skip.is_none()) {
+        if !configs.insert(r.hash.as_str()) {
+            continue;
+        }
+        to_run += 1;
+        if !sources.contains(r.stage1_hash.as_str()) {
+            stage1s += 1;
+            if super::runner::leaves_field_frozen(&toml::to_string(&r.config).unwrap_or_default()) {
+                sources.insert(r.stage1_hash.as_str());
+            }
+        }
+    }
+    (to_run, stage1s)
 }

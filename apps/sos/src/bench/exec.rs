@@ -20,7 +20,8 @@ use sos_core::train::photometric::{train_photometric_observed, StepStats};
 use sos_core::train::Session;
 
 use super::record::{
-    cpu_seconds, cpu_ticks, peak_rss_mib, stolen_between, Curves, Metrics, Outcome, Stage1Point, Stage2Point, Timing,
+    cpu_seconds, cpu_ticks, peak_rss_mib, stolen_between, Curves, Metrics, Outcome, RunRecord, Stage1Point,
+    Stage1Summary, Stage2Point, Timing,
 };
 
 /// Arguments of `sos bench-exec`.
@@ -37,6 +38,20 @@ pub struct ExecArgs {
     /// Learning-curve samples per stage.
     #[arg(long, default_value_t = 0)]
     pub curve_points: usize,
+    /// Skip stage 1: load this checkpoint of an earlier run with the same stage-1 settings
+    /// (a field stage 2 left frozen) and count that run's stage-1 time, curve and notes.
+    #[arg(long, requires = "stage1_record")]
+    pub stage1_checkpoint: Option<PathBuf>,
+    /// The record (`runs/<id>.json`) of the run `--stage1-checkpoint` comes from.
+    #[arg(long, requires = "stage1_checkpoint")]
+    pub stage1_record: Option<PathBuf>,
+}
+
+/// Stage 1 as a run ran it or took it from an earlier run.
+struct Stage1Result {
+    summary: Stage1Summary,
+    /// The stage's final held-out PSNR point is already in the curve (a shared stage 1).
+    curve_done: bool,
 }
 
 /// Runs one benchmark run and writes its outcome.
@@ -52,15 +67,43 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
     let mut timing = Timing { setup: started.elapsed().as_secs_f64(), ..Default::default() };
     let mut curves = CurveRecorder::new(args.curve_points, &session, segmenter.is_some());
 
-    let stage1 = Instant::now();
-    curves.begin_stage();
-    let stage1_stats = train_photometric_observed(&mut session, &mut curves)?;
-    timing.stage1 = stage1.elapsed().as_secs_f64() - curves.stage1_eval;
-    curves.stage1_steps = session.step;
-    let mut notes = Vec::new();
-    if let Some(step) = session.converged_at {
-        notes.push(format!("stage 1 stopped at step {step}: its training loss levelled off"));
-    }
+    let shared = match (&args.stage1_checkpoint, &args.stage1_record) {
+        (Some(checkpoint), Some(record)) => Some((checkpoint, RunRecord::load(record)?)),
+        _ => None,
+    };
+    let stage1 = match shared {
+        Some((checkpoint, source)) => {
+            let loaded = Instant::now();
+            session.load_checkpoint_sections(Some(checkpoint))?;
+            timing.setup += loaded.elapsed().as_secs_f64();
+            let o = source.outcome.as_ref().context("the shared stage 1's run has no outcome")?;
+            let summary = o.stage1.clone().context("the shared stage 1's run kept no stage-1 summary")?;
+            timing.stage1 = o.timing.stage1;
+            curves.curves.stage1 = o.curves.stage1.clone();
+            curves.stage1_steps = summary.steps;
+            let mut summary = summary;
+            summary.notes.push(format!(
+                "stage 1 shared with `{}` (the same stage-1 settings): its stage-1 time and curve are that run's",
+                source.key.id
+            ));
+            Stage1Result { summary, curve_done: true }
+        }
+        None => {
+            let stage1 = Instant::now();
+            curves.begin_stage();
+            let stats = train_photometric_observed(&mut session, &mut curves)?;
+            timing.stage1 = stage1.elapsed().as_secs_f64() - curves.stage1_eval;
+            curves.stage1_steps = session.step;
+            let mut notes = Vec::new();
+            if let Some(step) = session.converged_at {
+                notes.push(format!("stage 1 stopped at step {step}: its training loss levelled off"));
+            }
+            notes.extend(stats.faces.as_ref().and_then(face_pileup_warning));
+            let train_psnr = stats.psnr.is_finite().then_some(stats.psnr);
+            Stage1Result { summary: Stage1Summary { notes, train_psnr, steps: session.step }, curve_done: false }
+        }
+    };
+    let mut notes = stage1.summary.notes.clone();
     let metrics = match segmenter {
         None => {
             let t = Instant::now();
@@ -94,16 +137,20 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
             mask_metrics(&eval, &mut notes)
         }
     };
-    notes.extend(stage1_stats.faces.as_ref().and_then(face_pileup_warning));
-    if let Some(w) = metrics.psnr.and_then(|p| overfitting_warning(stage1_stats.psnr, p)) {
+    let train_psnr = stage1.summary.train_psnr.unwrap_or(f64::NAN);
+    if let Some(w) = metrics.psnr.and_then(|p| overfitting_warning(train_psnr, p)) {
         notes.push(w);
     }
-    curves.finish(&metrics, timing.stage1, timing.stage2);
+    curves.finish(&metrics, timing.stage1, timing.stage2, stage1.curve_done);
     if session.scene.test.is_empty() {
         notes.push("the scene holds out no views: no held-out metrics".into());
     }
     timing.curve_eval = curves.stage1_eval + curves.stage2_eval;
     timing.total = started.elapsed().as_secs_f64() - timing.curve_eval;
+    if stage1.curve_done {
+        // The shared stage 1 ran in another process: its time counts as if it ran here.
+        timing.total += timing.stage1;
+    }
     let outcome = Outcome {
         metrics,
         timing,
@@ -113,6 +160,7 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
         curves: curves.curves,
         notes,
         derived: session.derived.clone(),
+        stage1: (!stage1.curve_done).then_some(stage1.summary),
     };
     crate::commands::write_json(&args.outcome, &outcome)
 }
@@ -183,12 +231,19 @@ impl CurveRecorder {
         self.points > 1 && step < total && (1..self.points).any(|i| (total * i).div_ceil(self.points) == step)
     }
 
-    /// The final points, from the run's own evaluation.
-    fn finish(&mut self, metrics: &Metrics, stage1_seconds: f64, stage2_seconds: f64) {
+    /// The final points, from the run's own evaluation (stage 1's only when `stage1_done` is
+    /// false: a shared stage 1's curve already ends with it).
+    fn finish(&mut self, metrics: &Metrics, stage1_seconds: f64, stage2_seconds: f64, stage1_done: bool) {
         if self.points == 0 {
             return;
         }
-        self.curves.stage1.push(Stage1Point { step: self.stage1_steps, seconds: stage1_seconds, psnr: metrics.psnr });
+        if !stage1_done {
+            self.curves.stage1.push(Stage1Point {
+                step: self.stage1_steps,
+                seconds: stage1_seconds,
+                psnr: metrics.psnr,
+            });
+        }
         if self.stage2_steps > 0 {
             self.curves.stage2.push(Stage2Point {
                 step: self.stage2_steps,

@@ -78,6 +78,9 @@ pub struct PlannedRun {
     pub config: Value,
     /// Hash of everything that decides the run's result.
     pub hash: String,
+    /// Hash of everything that decides its stage 1: runs with equal ones (sweep points that
+    /// change only stage-2 settings) may share one stage 1.
+    pub stage1_hash: String,
     /// Why the run cannot happen here (missing data or weights, a kind not built in).
     pub skip: Option<String>,
 }
@@ -252,6 +255,7 @@ impl RunContext<'_> {
                 None => (method.to_string(), None, method.to_string()),
             };
             let hash = run_hash(&config, self.generate, self.curve_points);
+            let stage1_hash = stage1_hash(&config, self.generate, self.curve_points);
             out.push(PlannedRun {
                 key: RunKey {
                     id: format!("{}__{slug}__s{seed}", self.scene),
@@ -265,6 +269,7 @@ impl RunContext<'_> {
                 generate: self.generate.cloned(),
                 config,
                 hash,
+                stage1_hash,
                 skip,
             });
         }
@@ -408,6 +413,21 @@ fn run_hash(config: &Value, generate: Option<&Generate>, curve_points: usize) ->
     hash_text(&text)
 }
 
+/// Sections of a run config that stage 1 never reads: the head, its teacher, miner and
+/// losses, stage 2's own settings and the mask rules.
+const STAGE2_SECTIONS: [&str; 6] = ["segment", "head", "masks", "loss", "extractor", "miner"];
+
+/// [`run_hash`] of the config without its [`STAGE2_SECTIONS`]: what decides stage 1.
+fn stage1_hash(config: &Value, generate: Option<&Generate>, curve_points: usize) -> String {
+    let mut c = config.clone();
+    if let Some(t) = c.as_table_mut() {
+        for section in STAGE2_SECTIONS {
+            t.remove(section);
+        }
+    }
+    run_hash(&c, generate, curve_points)
+}
+
 /// Hex SHA-256 of a text.
 pub fn hash_text(text: &str) -> String {
     Sha256::digest(text.as_bytes()).iter().map(|b| format!("{b:02x}")).collect()
@@ -473,6 +493,12 @@ mod tests {
         let a1 = m.runs.iter().find(|r| r.key.id == "a__default__s1").unwrap();
         assert_eq!(a0.hash, b0.hash);
         assert_ne!(a0.hash, a1.hash);
+        // Sweep points that change only stage-2 settings share the default's stage 1; another
+        // stage-1 setting (the `short` method's steps) or seed does not.
+        let short0 = m.runs.iter().find(|r| r.key.id == "a__short__s0").unwrap();
+        assert!(swept.iter().filter(|r| r.key.seed == 0).all(|r| r.stage1_hash == a0.stage1_hash && r.hash != a0.hash));
+        assert_ne!(short0.stage1_hash, a0.stage1_hash);
+        assert_ne!(a1.stage1_hash, a0.stage1_hash);
     }
 
     #[test]

@@ -136,6 +136,21 @@ pub struct Outcome {
     /// The settings the run derived from its scene.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub derived: Vec<sos_core::derived::DerivedSetting>,
+    /// What its stage 1 left for runs that share it (absent in a run that shared another's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stage1: Option<Stage1Summary>,
+}
+
+/// What a run's stage 1 gives a run that shares it besides the field: the stage's notes and
+/// the training rays' PSNR (for the overfitting warning).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Stage1Summary {
+    /// Notes about stage 1 (it stopped early, content piled up at the extent's faces).
+    pub notes: Vec<String>,
+    /// PSNR of the training rays at the end of stage 1 (absent when not finite).
+    pub train_psnr: Option<f64>,
+    /// Steps stage 1 ran.
+    pub steps: usize,
 }
 
 /// The machine a run ran on.
@@ -185,6 +200,9 @@ pub struct RunRecord {
     pub key: RunKey,
     /// Hash of the resolved config (and generated scene): equal hashes, equal results.
     pub hash: String,
+    /// Hash of what decides its stage 1 (see [`PlannedRun::stage1_hash`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stage1_hash: Option<String>,
     /// How it ended.
     pub status: Status,
     /// Why it failed or was skipped.
@@ -213,6 +231,7 @@ impl RunRecord {
         RunRecord {
             key: run.key.clone(),
             hash: run.hash.clone(),
+            stage1_hash: Some(run.stage1_hash.clone()),
             status,
             error,
             config: toml::to_string(&run.config).unwrap_or_default(),

@@ -113,7 +113,8 @@ pub fn run_all(
             }
             (copy, note)
         } else {
-            match execute(run, out, curve_points) {
+            let source = existing.iter().chain(&records).find(|r| shares_stage1(r, run, &work_dir));
+            match execute(run, out, curve_points, source) {
                 Ok(outcome) => {
                     tally.ran += 1;
                     let summary = summary_line(&outcome, started.elapsed().as_secs_f64());
@@ -184,8 +185,42 @@ fn remove_leftovers(runs_dir: &Path, work_dir: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Runs one planned run in a child process and returns what it measured.
-fn execute(run: &PlannedRun, out: &Path, curve_points: usize) -> anyhow::Result<Outcome> {
+/// Whether `run` can start from `source`'s stage 1: a finished run with the same stage-1
+/// settings that ran its own stage 1, whose checkpoint holds the field as stage 1 left it (its
+/// stage 2 ran, so the final checkpoint was written, and did not train the field) and is
+/// still in the work folder. The shared run gets the result its own stage 1 would give
+/// (stage 1 is deterministic per seed; stage 2 draws from its own seed).
+fn shares_stage1(source: &RunRecord, run: &PlannedRun, work_dir: &Path) -> bool {
+    let ran_own_stage1 = source.outcome.as_ref().is_some_and(|o| o.stage1.is_some());
+    source.status == Status::Done
+        && source.stage1_hash.as_deref() == Some(run.stage1_hash.as_str())
+        && ran_own_stage1
+        && leaves_field_frozen(&source.config)
+        && work_dir.join(&source.key.id).join(CHECKPOINT).is_file()
+}
+
+/// The final checkpoint of a run.
+const CHECKPOINT: &str = "checkpoint.bin";
+
+/// Whether a run config (TOML) runs stage 2 with the field frozen: stage 2 has steps and no
+/// photometric term (which trains the field jointly).
+pub(super) fn leaves_field_frozen(config: &str) -> bool {
+    let Ok(config) = config.parse::<toml::Table>() else { return false };
+    let segment = config.get("segment").and_then(Value::as_table);
+    let number = |key: &str| {
+        segment.and_then(|s| s.get(key)).and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
+    };
+    number("steps").is_some_and(|s| s > 0.0) && number("photometric_weight").unwrap_or(0.0) == 0.0
+}
+
+/// Runs one planned run in a child process and returns what it measured; with `stage1_from`,
+/// the run starts from that run's stage 1 (see [`shares_stage1`]).
+fn execute(
+    run: &PlannedRun,
+    out: &Path,
+    curve_points: usize,
+    stage1_from: Option<&RunRecord>,
+) -> anyhow::Result<Outcome> {
     if let Some(g) = &run.generate {
         ensure_generated(g, out)?;
     }
@@ -211,7 +246,8 @@ fn execute(run: &PlannedRun, out: &Path, curve_points: usize) -> anyhow::Result<
     let log_path = out.join("logs").join(format!("{}.log", run.key.id));
     let log = std::fs::File::create(&log_path).with_context(|| format!("creating {}", log_path.display()))?;
     let exe = own_binary()?;
-    let status = Command::new(exe)
+    let mut command = Command::new(exe);
+    command
         .arg("bench-exec")
         .arg(&config_path)
         .arg("--config-dir")
@@ -219,7 +255,16 @@ fn execute(run: &PlannedRun, out: &Path, curve_points: usize) -> anyhow::Result<
         .arg("--outcome")
         .arg(&outcome_path)
         .arg("--curve-points")
-        .arg(curve_points.to_string())
+        .arg(curve_points.to_string());
+    if let Some(source) = stage1_from {
+        let record = out.join("runs").join(format!("{}.json", source.key.id));
+        command
+            .arg("--stage1-checkpoint")
+            .arg(absolute(&work.join(&source.key.id).join(CHECKPOINT)))
+            .arg("--stage1-record")
+            .arg(absolute(&record));
+    }
+    let status = command
         .stdin(Stdio::null())
         .stdout(log.try_clone()?)
         .stderr(log)
@@ -290,5 +335,22 @@ fn ensure_generated(g: &Generate, out: &Path) -> anyhow::Result<()> {
             Ok(())
         }
         Err(e) => Err(e).with_context(|| format!("moving {} into place", dir.display())),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn only_a_stage_two_that_ran_with_the_field_frozen_leaves_a_stage_one_checkpoint() {
+        assert!(leaves_field_frozen("[segment]\nsteps = 100\nphotometric_weight = 0.0\n"));
+        assert!(leaves_field_frozen("[segment]\nsteps = 100\n"));
+        // No stage 2: no final checkpoint is written after stage 1.
+        assert!(!leaves_field_frozen("[segment]\nsteps = 0\n"));
+        assert!(!leaves_field_frozen("[train]\nsteps = 10\n"));
+        // Joint training changes the field in stage 2.
+        assert!(!leaves_field_frozen("[segment]\nsteps = 100\nphotometric_weight = 0.5\n"));
+        assert!(!leaves_field_frozen("not toml ["));
     }
 }
