@@ -204,6 +204,10 @@ fn runs_that_differ_only_after_stage_one_share_it_with_the_same_result() {
     assert_eq!(shared["outcome"]["curves"]["stage1"], source["outcome"]["curves"]["stage1"]);
     assert_eq!(shared["outcome"]["timing"]["stage1"], source["outcome"]["timing"]["stage1"]);
     assert!(shared["outcome"]["stage1"].is_null() && source["outcome"]["stage1"].is_object(), "{shared:#}");
+    // Its peak memory is at least the stage-1 run's; its CPU time covers only its own process.
+    let peak = |r: &serde_json::Value| r["outcome"]["peak_rss_mib"].as_f64().unwrap();
+    assert!(peak(&shared) >= peak(&source), "{} < {}", peak(&shared), peak(&source));
+    assert!(shared["outcome"]["cpu_seconds"].is_null() && source["outcome"]["cpu_seconds"].is_number());
     // Each run alone (one shard per run) runs its own stage 1, with the same metrics.
     let runs = 8;
     let mut shards = Vec::new();

@@ -52,6 +52,8 @@ struct Stage1Result {
     summary: Stage1Summary,
     /// The stage's final held-out PSNR point is already in the curve (a shared stage 1).
     curve_done: bool,
+    /// Peak resident memory of the run a shared stage 1 ran in.
+    source_peak_mib: Option<f64>,
 }
 
 /// Runs one benchmark run and writes its outcome.
@@ -86,7 +88,7 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
                 "stage 1 shared with `{}` (the same stage-1 settings): its stage-1 time and curve are that run's",
                 source.key.id
             ));
-            Stage1Result { summary, curve_done: true }
+            Stage1Result { summary, curve_done: true, source_peak_mib: o.peak_rss_mib }
         }
         None => {
             let stage1 = Instant::now();
@@ -100,7 +102,8 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
             }
             notes.extend(stats.faces.as_ref().and_then(face_pileup_warning));
             let train_psnr = stats.psnr.is_finite().then_some(stats.psnr);
-            Stage1Result { summary: Stage1Summary { notes, train_psnr, steps: session.step }, curve_done: false }
+            let summary = Stage1Summary { notes, train_psnr, steps: session.step };
+            Stage1Result { summary, curve_done: false, source_peak_mib: None }
         }
     };
     let mut notes = stage1.summary.notes.clone();
@@ -154,8 +157,13 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
     let outcome = Outcome {
         metrics,
         timing,
-        peak_rss_mib: peak_rss_mib(),
-        cpu_seconds: cpu_seconds(),
+        // A shared stage 1 ran in another process: its peak memory counts, and the CPU time of
+        // this process alone over a wall time that includes that stage would mean nothing.
+        peak_rss_mib: match (peak_rss_mib(), stage1.source_peak_mib) {
+            (Some(own), Some(source)) => Some(own.max(source)),
+            (own, source) => own.or(source),
+        },
+        cpu_seconds: if stage1.curve_done { None } else { cpu_seconds() },
         cpu_stolen: ticks.zip(cpu_ticks()).and_then(|(a, b)| stolen_between(a, b)),
         curves: curves.curves,
         notes,
