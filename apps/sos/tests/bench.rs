@@ -208,20 +208,23 @@ fn runs_that_differ_only_after_stage_one_share_it_with_the_same_result() {
     let peak = |r: &serde_json::Value| r["outcome"]["peak_rss_mib"].as_f64().unwrap();
     assert!(peak(&shared) >= peak(&source), "{} < {}", peak(&shared), peak(&source));
     assert!(shared["outcome"]["cpu_seconds"].is_null() && source["outcome"]["cpu_seconds"].is_number());
-    // Each run alone (one shard per run) runs its own stage 1, with the same metrics.
-    let runs = 8;
-    let mut shards = Vec::new();
-    for i in 0..runs {
-        let (shard, out_dir) = (format!("{i}/{runs}"), format!("alone{i}"));
+    // Shards keep the runs of one stage 1 together: two shards, one seed each, share as well.
+    for i in 0..2 {
+        let (shard, out_dir) = (format!("{i}/2"), format!("shard{i}"));
         let out = sos(&["bench", "bench.toml", "--shard", &shard, "--out", &out_dir], &dir);
         assert!(out.status.success(), "{}", text(&out.stderr));
-        shards.push(out_dir);
     }
-    let mut merge: Vec<&str> = vec!["bench", "merge"];
-    merge.extend(shards.iter().map(String::as_str));
-    merge.extend(["--out", "alone"]);
-    let merged = sos(&merge, &dir);
-    assert!(merged.status.success(), "{}", text(&merged.stderr));
+    let sharded: Vec<String> = (0..2)
+        .flat_map(|i| std::fs::read_dir(dir.join(format!("shard{i}/runs"))).unwrap())
+        .map(|e| std::fs::read_to_string(e.unwrap().path()).unwrap())
+        .collect();
+    assert_eq!(sharded.iter().filter(|r| r.contains("stage 1 shared with")).count(), 2);
+    // With `--own-stage1` every run trains its own stage 1, with the same metrics.
+    let list = sos(&["bench", "bench.toml", "--list", "--own-stage1"], &dir);
+    assert!(text(&list.stdout)
+        .ends_with("4 runs to run here, 4 of them with a stage 1 of their own (the others share one)\n"));
+    let out = sos(&["bench", "bench.toml", "--own-stage1", "--out", "alone"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
     let alone = json(&dir.join("alone/runs/tiny__short__s0.json"));
     assert!(!alone["outcome"]["notes"].to_string().contains("shared"), "{alone:#}");
     let diff = sos(&["bench", "diff", "alone", "together"], &dir);

@@ -36,6 +36,11 @@ pub struct BenchArgs {
     /// Print the matrix (run ids, skips) and stop.
     #[arg(long)]
     list: bool,
+    /// Every run trains its own stage 1, even where an earlier run with the same stage-1
+    /// settings could share its (e.g. to time each run whole, or to check that sharing changes
+    /// no result).
+    #[arg(long)]
+    own_stage1: bool,
 }
 
 #[derive(Debug, Subcommand)]
@@ -74,17 +79,11 @@ pub fn run(args: BenchArgs, progress: bool) -> anyhow::Result<()> {
         }
         Some(BenchAction::Diff { a, b }) => merge::diff(&a, &b),
         None => {
-            let file_path =
-                args.file.ok_or_else(|| anyhow!("name a benchmark file, e.g. `sos bench benchmarks/run_all.toml`"))?;
-            run_file(
-                &file_path,
-                args.profile.as_deref(),
-                args.out,
-                args.shard.as_deref(),
-                args.readme,
-                args.list,
-                progress,
-            )
+            let file_path = args
+                .file
+                .clone()
+                .ok_or_else(|| anyhow!("name a benchmark file, e.g. `sos bench benchmarks/run_all.toml`"))?;
+            run_file(&file_path, &args, progress)
         }
     }
 }
@@ -97,15 +96,9 @@ fn parse_shard(text: &str) -> anyhow::Result<(usize, usize)> {
     }
 }
 
-fn run_file(
-    file_path: &std::path::Path,
-    profile: Option<&str>,
-    out: Option<PathBuf>,
-    shard_arg: Option<&str>,
-    readme: Option<PathBuf>,
-    list: bool,
-    progress: bool,
-) -> anyhow::Result<()> {
+fn run_file(file_path: &std::path::Path, args: &BenchArgs, progress: bool) -> anyhow::Result<()> {
+    let (profile, shard_arg) = (args.profile.as_deref(), args.shard.as_deref());
+    let (out, readme, list) = (args.out.clone(), args.readme.clone(), args.list);
     let shard_of = shard_arg.map(parse_shard).transpose()?;
     let file = BenchFile::load(file_path)?;
     let profile_name =
@@ -140,7 +133,12 @@ fn run_file(
                 r.skip.as_ref().map_or(String::new(), |s| format!("  skipped: {s}"))
             );
         }
-        let (to_run, stage1s) = stage1_count(&runs);
+        let (to_run, stage1s) = if args.own_stage1 {
+            let n = stage1_count(&runs).0;
+            (n, n)
+        } else {
+            stage1_count(&runs)
+        };
         println!("{to_run} runs to run here, {stage1s} of them with a stage 1 of their own (the others share one)");
         return Ok(());
     }
@@ -153,7 +151,7 @@ fn run_file(
         target: file.bench.target,
     };
     let commit = record::commit_of(&file.dir());
-    let tally = run_all(&runs, &out, &meta, curve_points, &commit, progress)?;
+    let tally = run_all(&runs, &out, &meta, curve_points, &commit, progress, !args.own_stage1)?;
     println!(
         "{} ran, {} cached, {} skipped, {} failed; report in {}",
         tally.ran,

@@ -447,9 +447,42 @@ fn parse_generate(spec: &Table) -> anyhow::Result<Generate> {
     Ok(Generate { layout: format, synthetic, spec: spec.clone() })
 }
 
-/// The deterministic slice `index` of `count` (every `count`-th run of the sorted list).
+/// Work of a run that shares another's stage 1, against 1 for a run that trains its own
+/// (stage 2, masks and curves are about half of a run).
+const SHARED_RUN_WORK: f64 = 0.5;
+
+/// The deterministic slice `index` of `count`. Runs with one stage 1 (equal
+/// [`PlannedRun::stage1_hash`]) stay in one slice, so that its runs can share that stage; the
+/// groups go, in the order of their first run, each to the slice with the least work so far
+/// (the lowest index on a tie), a group's first run counting 1 and each further one
+/// [`SHARED_RUN_WORK`] (skipped runs nothing). Every shard computes the same assignment.
 pub fn shard(runs: Vec<PlannedRun>, index: usize, count: usize) -> Vec<PlannedRun> {
-    runs.into_iter().enumerate().filter(|(i, _)| i % count == index).map(|(_, r)| r).collect()
+    let mut groups: Vec<&str> = Vec::new();
+    let mut work: Vec<f64> = Vec::new();
+    let group_of: Vec<usize> = runs
+        .iter()
+        .map(|r| {
+            let g = groups.iter().position(|&h| h == r.stage1_hash).unwrap_or_else(|| {
+                groups.push(&r.stage1_hash);
+                work.push(0.0);
+                groups.len() - 1
+            });
+            if r.skip.is_none() {
+                work[g] += if work[g] == 0.0 { 1.0 } else { SHARED_RUN_WORK };
+            }
+            g
+        })
+        .collect();
+    let mut load = vec![0.0f64; count.max(1)];
+    let slice_of: Vec<usize> = work
+        .iter()
+        .map(|&w| {
+            let least = (0..load.len()).fold(0, |best, s| if load[s] < load[best] { s } else { best });
+            load[least] += w;
+            least
+        })
+        .collect();
+    runs.into_iter().zip(group_of).filter(|&(_, g)| slice_of[g] == index).map(|(r, _)| r).collect()
 }
 
 #[cfg(test)]
@@ -547,6 +580,18 @@ mod tests {
         let mut joined: Vec<String> = (0..3).flat_map(|i| shard(m.runs.clone(), i, 3)).map(|r| r.key.id).collect();
         joined.sort();
         assert_eq!(joined, ids);
-        assert!(shard(m.runs.clone(), 0, 3).len() >= 4);
+        // Runs with one stage 1 (scenes `a` and `b` have one config) stay in one shard (every
+        // 4th run of the list would split them), and the six such pairs spread evenly.
+        let mut sizes = Vec::new();
+        for i in 0..4 {
+            let slice = shard(m.runs.clone(), i, 4);
+            sizes.push(slice.len());
+            for r in &slice {
+                let group: Vec<_> = m.runs.iter().filter(|o| o.stage1_hash == r.stage1_hash).collect();
+                assert_eq!(group.len(), 2);
+                assert!(group.iter().all(|o| slice.iter().any(|x| x.key.id == o.key.id)), "{}", r.key.id);
+            }
+        }
+        assert_eq!(sizes, [4, 4, 2, 2]);
     }
 }

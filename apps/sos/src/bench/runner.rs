@@ -59,7 +59,8 @@ pub struct Tally {
     pub failed: Vec<String>,
 }
 
-/// Runs `runs` (a matrix or one shard of it) into `out`.
+/// Runs `runs` (a matrix or one shard of it) into `out`; with `share_stage1`, a run may start
+/// from an earlier run's stage 1 (see [`shares_stage1`]).
 pub fn run_all(
     runs: &[PlannedRun],
     out: &Path,
@@ -67,6 +68,7 @@ pub fn run_all(
     curve_points: usize,
     commit: &str,
     progress: bool,
+    share_stage1: bool,
 ) -> anyhow::Result<Tally> {
     let runs_dir = out.join("runs");
     let work_dir = out.join(WORK_DIR);
@@ -113,7 +115,7 @@ pub fn run_all(
             }
             (copy, note)
         } else {
-            let source = existing.iter().chain(&records).find(|r| shares_stage1(r, run, &work_dir));
+            let source = existing.iter().chain(&records).find(|r| share_stage1 && shares_stage1(r, run, &work_dir));
             match execute(run, out, curve_points, source) {
                 Ok(outcome) => {
                     tally.ran += 1;
