@@ -454,8 +454,8 @@ const SHARED_RUN_WORK: f64 = 0.5;
 /// The deterministic slice `index` of `count`. Runs with one stage 1 (equal
 /// [`PlannedRun::stage1_hash`]) stay in one slice, so that its runs can share that stage; the
 /// groups go, in the order of their first run, each to the slice with the least work so far
-/// (the lowest index on a tie), a group's first run counting 1 and each further one
-/// [`SHARED_RUN_WORK`] (skipped runs nothing). Every shard computes the same assignment.
+/// (the lowest index on a tie), a group's first run counting 1 and each further run
+/// one half (skipped runs nothing). Every shard computes the same assignment.
 pub fn shard(runs: Vec<PlannedRun>, index: usize, count: usize) -> Vec<PlannedRun> {
     let mut groups: Vec<&str> = Vec::new();
     let mut work: Vec<f64> = Vec::new();

@@ -60,7 +60,7 @@ pub struct Tally {
 }
 
 /// Runs `runs` (a matrix or one shard of it) into `out`; with `share_stage1`, a run may start
-/// from an earlier run's stage 1 (see [`shares_stage1`]).
+/// from an earlier finished run's stage 1 with the same stage-1 settings.
 pub fn run_all(
     runs: &[PlannedRun],
     out: &Path,
