@@ -187,12 +187,18 @@ fn a_matrix_runs_reports_caches_and_merges_from_shards() {
 #[test]
 fn runs_that_differ_only_after_stage_one_share_it_with_the_same_result() {
     let dir = temp_dir("shared-stage1");
-    write_bench(&dir, "");
-    // `--list` counts them: two seeds of `default` and `short` on the scene that exists.
+    // Joint training goes on from stage 1's optimiser state, which a checkpoint after stage 2
+    // does not keep: such a run trains its own stage 1.
+    let joint =
+        "[methods.joint]\nset = { \"segment.photometric_weight\" = 0.1, \"segment.logits\" = \"composited\" }\n";
+    write_bench(&dir, joint);
+    // `--list` counts them: two seeds each of `default`, `short` and `joint` on the scene that
+    // exists; `short` shares `default`'s stage 1.
     let list = sos(&["bench", "bench.toml", "--list"], &dir);
     assert!(list.status.success(), "{}", text(&list.stderr));
-    let last = text(&list.stdout).lines().last().unwrap_or_default().to_string();
-    assert_eq!(last, "4 runs to run here, 2 of them with a stage 1 of their own (the others share one)");
+    let last = |out: &std::process::Output| text(&out.stdout).lines().last().unwrap_or_default().to_string();
+    let counted = "6 runs to run here, 4 of them with a stage 1 of their own (the others share one) in a fresh";
+    assert!(last(&list).starts_with(counted), "{}", last(&list));
     let out = sos(&["bench", "bench.toml", "--out", "together"], &dir);
     assert!(out.status.success(), "{}", text(&out.stderr));
     // `short` changes only stage 2's steps: it starts from `default`'s stage 1 (which runs
@@ -208,6 +214,8 @@ fn runs_that_differ_only_after_stage_one_share_it_with_the_same_result() {
     let peak = |r: &serde_json::Value| r["outcome"]["peak_rss_mib"].as_f64().unwrap();
     assert!(peak(&shared) >= peak(&source), "{} < {}", peak(&shared), peak(&source));
     assert!(shared["outcome"]["cpu_seconds"].is_null() && source["outcome"]["cpu_seconds"].is_number());
+    let joint = json(&dir.join("together/runs/tiny__joint__s0.json"));
+    assert!(joint["outcome"]["stage1"].is_object(), "{joint:#}");
     // Shards keep the runs of one stage 1 together: two shards, one seed each, share as well.
     for i in 0..2 {
         let (shard, out_dir) = (format!("{i}/2"), format!("shard{i}"));
@@ -221,8 +229,8 @@ fn runs_that_differ_only_after_stage_one_share_it_with_the_same_result() {
     assert_eq!(sharded.iter().filter(|r| r.contains("stage 1 shared with")).count(), 2);
     // With `--own-stage1` every run trains its own stage 1, with the same metrics.
     let list = sos(&["bench", "bench.toml", "--list", "--own-stage1"], &dir);
-    assert!(text(&list.stdout)
-        .ends_with("4 runs to run here, 4 of them with a stage 1 of their own (the others share one)\n"));
+    let own = "6 runs to run here, 6 of them with a stage 1 of their own (the others share one) in a fresh";
+    assert!(last(&list).starts_with(own), "{}", last(&list));
     let out = sos(&["bench", "bench.toml", "--own-stage1", "--out", "alone"], &dir);
     assert!(out.status.success(), "{}", text(&out.stderr));
     let alone = json(&dir.join("alone/runs/tiny__short__s0.json"));

@@ -139,7 +139,10 @@ fn run_file(file_path: &std::path::Path, args: &BenchArgs, progress: bool) -> an
         } else {
             stage1_count(&runs)
         };
-        println!("{to_run} runs to run here, {stage1s} of them with a stage 1 of their own (the others share one)");
+        println!(
+            "{to_run} runs to run here, {stage1s} of them with a stage 1 of their own (the others share one) \
+             in a fresh result folder"
+        );
         return Ok(());
     }
     let meta = BenchMeta {
@@ -179,9 +182,9 @@ fn run_file(file_path: &std::path::Path, args: &BenchArgs, progress: bool) -> an
 }
 
 /// Runs that would run (not skipped, no other run with the same config) and how many of them
-/// train a stage 1 of their own when run in order: the rest share the stage 1 of an earlier
-/// run with the same stage-1 settings whose stage 2 leaves the field frozen (as the runner
-/// decides, given that every run finishes).
+/// train a stage 1 of their own when run in order into a fresh result folder: the rest leave
+/// the field frozen and share the stage 1 of an earlier run with the same stage-1 settings
+/// that left it frozen too (as the runner decides, given that every run finishes).
 fn stage1_count(runs: &[PlannedRun]) -> (usize, usize) {
     let mut configs = std::collections::HashSet::new();
     let mut sources = std::collections::HashSet::new();
@@ -191,9 +194,10 @@ fn stage1_count(runs: &[PlannedRun]) -> (usize, usize) {
             continue;
         }
         to_run += 1;
-        if !sources.contains(r.stage1_hash.as_str()) {
+        let frozen = super::runner::leaves_field_frozen(&toml::to_string(&r.config).unwrap_or_default());
+        if !(frozen && sources.contains(r.stage1_hash.as_str())) {
             stage1s += 1;
-            if super::runner::leaves_field_frozen(&toml::to_string(&r.config).unwrap_or_default()) {
+            if frozen {
                 sources.insert(r.stage1_hash.as_str());
             }
         }

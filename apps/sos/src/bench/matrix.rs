@@ -81,6 +81,9 @@ pub struct PlannedRun {
     /// Hash of everything that decides its stage 1: runs with equal ones (sweep points that
     /// change only stage-2 settings) may share one stage 1.
     pub stage1_hash: String,
+    /// What [`shard`] groups runs by: the stage-1 part of the config as the benchmark file
+    /// writes it, before resolution, so every machine computes the same whatever it can run.
+    pub shard_key: String,
     /// Why the run cannot happen here (missing data or weights, a kind not built in).
     pub skip: Option<String>,
 }
@@ -231,6 +234,7 @@ impl RunContext<'_> {
                 Err(e) => bail!("{fpath}: scene `{}`, {whose}: {e}", self.scene),
             }
             overlay::set(&mut value, "seed", Value::Integer(seed as i64)).expect("the root is a table");
+            let shard_key = stage1_hash(&value, self.generate, self.curve_points);
             let config = if skip.is_none() {
                 match check(&value) {
                     Ok(v) => v,
@@ -270,6 +274,7 @@ impl RunContext<'_> {
                 config,
                 hash,
                 stage1_hash,
+                shard_key,
                 skip,
             });
         }
@@ -451,25 +456,24 @@ fn parse_generate(spec: &Table) -> anyhow::Result<Generate> {
 /// (stage 2, masks and curves are about half of a run).
 const SHARED_RUN_WORK: f64 = 0.5;
 
-/// The deterministic slice `index` of `count`. Runs with one stage 1 (equal
-/// [`PlannedRun::stage1_hash`]) stay in one slice, so that its runs can share that stage; the
+/// The deterministic slice `index` of `count`. Runs with one stage 1 as the file writes it
+/// (equal [`PlannedRun::shard_key`]) stay in one slice, so that they can share that stage; the
 /// groups go, in the order of their first run, each to the slice with the least work so far
-/// (the lowest index on a tie), a group's first run counting 1 and each further run
-/// one half (skipped runs nothing). Every shard computes the same assignment.
+/// (the lowest index on a tie), a group's first run counting 1 and each further run one half.
+/// Nothing machine-specific (skips, resolved settings) enters, so every machine computes the
+/// same slices.
 pub fn shard(runs: Vec<PlannedRun>, index: usize, count: usize) -> Vec<PlannedRun> {
     let mut groups: Vec<&str> = Vec::new();
     let mut work: Vec<f64> = Vec::new();
     let group_of: Vec<usize> = runs
         .iter()
         .map(|r| {
-            let g = groups.iter().position(|&h| h == r.stage1_hash).unwrap_or_else(|| {
-                groups.push(&r.stage1_hash);
+            let g = groups.iter().position(|&h| h == r.shard_key).unwrap_or_else(|| {
+                groups.push(&r.shard_key);
                 work.push(0.0);
                 groups.len() - 1
             });
-            if r.skip.is_none() {
-                work[g] += if work[g] == 0.0 { 1.0 } else { SHARED_RUN_WORK };
-            }
+            work[g] += if work[g] == 0.0 { 1.0 } else { SHARED_RUN_WORK };
             g
         })
         .collect();
@@ -587,7 +591,7 @@ mod tests {
             let slice = shard(m.runs.clone(), i, 4);
             sizes.push(slice.len());
             for r in &slice {
-                let group: Vec<_> = m.runs.iter().filter(|o| o.stage1_hash == r.stage1_hash).collect();
+                let group: Vec<_> = m.runs.iter().filter(|o| o.shard_key == r.shard_key).collect();
                 assert_eq!(group.len(), 2);
                 assert!(group.iter().all(|o| slice.iter().any(|x| x.key.id == o.key.id)), "{}", r.key.id);
             }

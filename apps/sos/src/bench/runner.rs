@@ -112,10 +112,14 @@ pub fn run_all(
             copy.key = run.key.clone();
             if let Some(o) = copy.outcome.as_mut() {
                 o.notes.push(note.clone());
+                // No checkpoint of this run's own exists: it is no stage 1 to share.
+                o.stage1 = None;
             }
             (copy, note)
         } else {
-            let source = existing.iter().chain(&records).find(|r| share_stage1 && shares_stage1(r, run, &work_dir));
+            // Only this invocation's records: each is the latest of its id, and its work
+            // folder holds that very run (an older record of a rerun id would not).
+            let source = records.iter().find(|r| share_stage1 && shares_stage1(r, run, &work_dir));
             match execute(run, out, curve_points, source) {
                 Ok(outcome) => {
                     tally.ran += 1;
@@ -190,14 +194,18 @@ fn remove_leftovers(runs_dir: &Path, work_dir: &Path) -> anyhow::Result<()> {
 /// Whether `run` can start from `source`'s stage 1: a finished run with the same stage-1
 /// settings that ran its own stage 1, whose checkpoint holds the field as stage 1 left it (its
 /// stage 2 ran, so the final checkpoint was written, and did not train the field) and is
-/// still in the work folder. The shared run gets the result its own stage 1 would give
-/// (stage 1 is deterministic per seed; stage 2 draws from its own seed).
+/// still in the work folder; `run` must leave the field frozen too (joint training would go on
+/// from stage 1's optimiser state, which that checkpoint does not keep). The shared run gets
+/// the result its own stage 1 would give (stage 1 is deterministic per seed; stage 2 draws
+/// from its own seed).
 fn shares_stage1(source: &RunRecord, run: &PlannedRun, work_dir: &Path) -> bool {
     let ran_own_stage1 = source.outcome.as_ref().is_some_and(|o| o.stage1.is_some());
     source.status == Status::Done
+        && source.key.id != run.key.id
         && source.stage1_hash.as_deref() == Some(run.stage1_hash.as_str())
         && ran_own_stage1
         && leaves_field_frozen(&source.config)
+        && leaves_field_frozen(&toml::to_string(&run.config).unwrap_or_default())
         && work_dir.join(&source.key.id).join(CHECKPOINT).is_file()
 }
 
@@ -258,13 +266,15 @@ fn execute(
         .arg(&outcome_path)
         .arg("--curve-points")
         .arg(curve_points.to_string());
+    // The child gets the very record the runner checked.
+    let source_record = work.join(format!("{}.stage1-source.json", run.key.id));
     if let Some(source) = stage1_from {
-        let record = out.join("runs").join(format!("{}.json", source.key.id));
+        crate::commands::write_json(&source_record, source)?;
         command
             .arg("--stage1-checkpoint")
             .arg(absolute(&work.join(&source.key.id).join(CHECKPOINT)))
             .arg("--stage1-record")
-            .arg(absolute(&record));
+            .arg(absolute(&source_record));
     }
     let status = command
         .stdin(Stdio::null())
@@ -272,6 +282,7 @@ fn execute(
         .stderr(log)
         .status()
         .context("starting the run's process")?;
+    let _ = std::fs::remove_file(&source_record);
     if !status.success() {
         bail!("{} (log: {})\n{}", describe(status), log_path.display(), error_lines(&log_path));
     }
