@@ -238,7 +238,7 @@ impl CellStats {
     pub fn extract_in_view(&self, patch: &RgbImage, view: &RgbImage) -> FeatureMap {
         match self.cells(view) {
             Some(grid) => {
-                let background = Background::of(&grid, &self.config);
+                let (background, _) = Background::of(&grid, &self.config);
                 self.extract_against(patch, Some(&background))
             }
             None => self.extract_one(patch),
@@ -251,16 +251,18 @@ impl CellStats {
         let Some(grid) = self.cells(image) else {
             return FeatureMap::zeros(channels, channels);
         };
-        let own;
-        let background = match background {
-            Some(b) => b,
+        let (distance, saliency) = match background {
+            Some(b) => {
+                let distance = b.distances(&grid.cells, &self.config);
+                let saliency = b.normalize(&distance);
+                (distance, saliency)
+            }
             None => {
-                own = Background::of(&grid, &self.config);
-                &own
+                let (own, distance) = Background::of(&grid, &self.config);
+                let saliency = own.normalize(&distance);
+                (distance, saliency)
             }
         };
-        let distance = background.distances(&grid.cells, &self.config);
-        let saliency = background.normalize(&distance);
         let n = grid.cells.len();
         let mut data = vec![0.0; channels * n];
         let mut cls = vec![0.0; channels];
@@ -458,7 +460,8 @@ struct Background {
 }
 
 impl Background {
-    fn of(grid: &CellGrid, cfg: &CellStatsConfig) -> Self {
+    /// The background of an image's cells, with each cell's distance from it.
+    fn of(grid: &CellGrid, cfg: &CellStatsConfig) -> (Self, Vec<f32>) {
         let (gh, gw) = (grid.height, grid.width);
         let border = (0..gh * gw)
             .filter(|&i| {
@@ -472,7 +475,7 @@ impl Background {
         let lo = own.iter().copied().fold(f32::INFINITY, f32::min);
         let hi = own.iter().copied().fold(f32::NEG_INFINITY, f32::max);
         background.range = (lo, hi);
-        background
+        (background, own)
     }
 
     /// Distinctness of each cell from the border: the mean distance of its colour features

@@ -50,8 +50,9 @@ pub struct ExecArgs {
 /// Stage 1 as a run ran it or took it from an earlier run.
 struct Stage1Result {
     summary: Stage1Summary,
-    /// The stage's final held-out PSNR point is already in the curve (a shared stage 1).
-    curve_done: bool,
+    /// Taken from an earlier run: its time, curve (final point included) and memory are that
+    /// run's, not this process's.
+    shared: bool,
     /// Peak resident memory of the run a shared stage 1 ran in.
     source_peak_mib: Option<f64>,
 }
@@ -79,16 +80,15 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
             session.load_checkpoint_sections(Some(checkpoint))?;
             timing.setup += loaded.elapsed().as_secs_f64();
             let o = source.outcome.as_ref().context("the shared stage 1's run has no outcome")?;
-            let summary = o.stage1.clone().context("the shared stage 1's run kept no stage-1 summary")?;
+            let mut summary = o.stage1.clone().context("the shared stage 1's run kept no stage-1 summary")?;
             timing.stage1 = o.timing.stage1;
             curves.curves.stage1 = o.curves.stage1.clone();
             curves.stage1_steps = summary.steps;
-            let mut summary = summary;
             summary.notes.push(format!(
                 "stage 1 shared with `{}` (the same stage-1 settings): its stage-1 time and curve are that run's",
                 source.key.id
             ));
-            Stage1Result { summary, curve_done: true, source_peak_mib: o.peak_rss_mib }
+            Stage1Result { summary, shared: true, source_peak_mib: o.peak_rss_mib }
         }
         None => {
             let stage1 = Instant::now();
@@ -103,7 +103,7 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
             notes.extend(stats.faces.as_ref().and_then(face_pileup_warning));
             let train_psnr = stats.psnr.is_finite().then_some(stats.psnr);
             let summary = Stage1Summary { notes, train_psnr, steps: session.step };
-            Stage1Result { summary, curve_done: false, source_peak_mib: None }
+            Stage1Result { summary, shared: false, source_peak_mib: None }
         }
     };
     let mut notes = stage1.summary.notes.clone();
@@ -144,13 +144,13 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
     if let Some(w) = metrics.psnr.and_then(|p| overfitting_warning(train_psnr, p)) {
         notes.push(w);
     }
-    curves.finish(&metrics, timing.stage1, timing.stage2, stage1.curve_done);
+    curves.finish(&metrics, timing.stage1, timing.stage2, stage1.shared);
     if session.scene.test.is_empty() {
         notes.push("the scene holds out no views: no held-out metrics".into());
     }
     timing.curve_eval = curves.stage1_eval + curves.stage2_eval;
     timing.total = started.elapsed().as_secs_f64() - timing.curve_eval;
-    if stage1.curve_done {
+    if stage1.shared {
         // The shared stage 1 ran in another process: its time counts as if it ran here.
         timing.total += timing.stage1;
     }
@@ -163,12 +163,12 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
             (Some(own), Some(source)) => Some(own.max(source)),
             (own, source) => own.or(source),
         },
-        cpu_seconds: if stage1.curve_done { None } else { cpu_seconds() },
+        cpu_seconds: if stage1.shared { None } else { cpu_seconds() },
         cpu_stolen: ticks.zip(cpu_ticks()).and_then(|(a, b)| stolen_between(a, b)),
         curves: curves.curves,
         notes,
         derived: session.derived.clone(),
-        stage1: (!stage1.curve_done).then_some(stage1.summary),
+        stage1: (!stage1.shared).then_some(stage1.summary),
     };
     crate::commands::write_json(&args.outcome, &outcome)
 }
