@@ -10,6 +10,12 @@
 //! every tile, in parallel over rows. The identity term pairs a patch with itself, so `G` and
 //! `S` are symmetric there: its pass 2 visits each unordered pair once, carrying both orders'
 //! shares of the loss and gradient.
+//!
+//! The all-pairs sum costs `P⁴` kernel evaluations per patch pair, most of a stage-2 step on a
+//! CPU. With `samples = s` (below `P`), each patch draws `s²` of its pixels at random per step
+//! and the loss is the same mean over the pairs of those pixels: an estimate of the full loss
+//! whose gradient reaches the drawn pixels only, as the appearance loss samples its points
+//! (STEGO's `feature_samples`). `samples = 0` (or `≥ P`) sums over every pair, as the reference.
 
 use rand::RngCore;
 use rayon::prelude::*;
@@ -35,7 +41,12 @@ const ROWS: usize = 16;
 /// Most parallel tasks the rows of one patch pair are split into.
 const MAX_TASKS: usize = 16;
 
-/// Settings of [`GeometryLoss`]; defaults are the reference LLFF run's (`0.5,1,3,1`).
+/// Pixels per patch side that each step's pairs are drawn from by default: 32² of a 64×64
+/// patch's pixels give a sixteenth of the all-pairs work.
+pub const DEFAULT_SAMPLES: usize = 32;
+
+/// Settings of [`GeometryLoss`]; the shifts, weights and kernel are the reference LLFF run's
+/// (`0.5,1,3,1`); `samples` departs from it (see the module documentation).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct GeometryConfig {
@@ -54,6 +65,9 @@ pub struct GeometryConfig {
     /// Depth clip applied by the renderer before forming points (see [`clip_depth`]); the
     /// loss itself receives points.
     pub depth_clip: f64,
+    /// Pixels per patch side drawn for each step's pairs (`samples²` per patch); 0, or at
+    /// least the patch side, pairs every pixel as the reference does.
+    pub samples: usize,
 }
 
 impl Default for GeometryConfig {
@@ -66,6 +80,7 @@ impl Default for GeometryConfig {
             epsilon: 0.05,
             cap: 15.0,
             depth_clip: 15.0,
+            samples: DEFAULT_SAMPLES,
         }
     }
 }
@@ -568,8 +583,9 @@ pub fn geometry_loss_from_depth(
 }
 
 impl ContrastiveLoss for GeometryLoss {
-    /// Evaluates [`geometry_loss`] on `batch.points` (already depth-clipped by the renderer);
-    /// draws nothing from `rng`.
+    /// Evaluates [`geometry_loss`] on `batch.points` (already depth-clipped by the renderer),
+    /// over every pixel pair or, with `samples` below the patch side, over the pairs of
+    /// `samples²` pixels per patch drawn from `rng` (nothing is drawn otherwise).
     ///
     /// # Panics
     /// If the batch is inconsistent (see [`geometry_term`]) or `grad_logits` does not match
@@ -577,12 +593,99 @@ impl ContrastiveLoss for GeometryLoss {
     fn loss_and_grad(
         &self,
         batch: &PatchBatch,
-        _rng: &mut dyn RngCore,
+        rng: &mut dyn RngCore,
         grad_scale: f32,
         grad_logits: &mut [f32],
     ) -> LossValue {
         let shape = PatchShape { n_patches: batch.n_patches, d_seg: batch.d_seg, patch: batch.patch };
-        geometry_loss(&self.config, batch.points, batch.logits, shape, batch.negatives, grad_scale, Some(grad_logits))
+        let side = self.config.samples;
+        if side == 0 || side >= batch.patch {
+            return geometry_loss(
+                &self.config,
+                batch.points,
+                batch.logits,
+                shape,
+                batch.negatives,
+                grad_scale,
+                Some(grad_logits),
+            );
+        }
+        let drawn = PixelSample::draw(shape, side, rng);
+        let (points, logits) = drawn.gather(batch.points, batch.logits);
+        let mut grad = vec![0.0f32; logits.len()];
+        let value =
+            geometry_loss(&self.config, &points, &logits, drawn.shape, batch.negatives, grad_scale, Some(&mut grad));
+        drawn.scatter_add(&grad, grad_logits);
+        value
+    }
+}
+
+/// `side²` distinct pixels of each patch, drawn uniformly, as a smaller batch of `side × side`
+/// "patches" (the loss uses only the pixels' pairs, never their layout).
+///
+/// Each pair of distinct pixels is then drawn with the same probability, so the logits'
+/// expected gradient is the all-pairs gradient (to a factor 1 − 1/side²). The loss value is
+/// the drawn pairs' mean, in which the pixels' pairs with themselves (no gradient; the kernel's
+/// cap) weigh 1/side² rather than 1/P²: it is comparable between runs with the same `samples`.
+struct PixelSample {
+    /// Layout of the gathered batch.
+    shape: PatchShape,
+    /// The full batch's layout.
+    full: PatchShape,
+    /// Drawn pixel indices, `side²` per patch, ascending within a patch.
+    pixels: Vec<usize>,
+}
+
+impl PixelSample {
+    fn draw(full: PatchShape, side: usize, rng: &mut dyn RngCore) -> Self {
+        let (m, count) = (full.pixels(), side * side);
+        let mut pixels = Vec::with_capacity(full.n_patches * count);
+        let mut order: Vec<usize> = (0..m).collect();
+        for _ in 0..full.n_patches {
+            // A partial Fisher-Yates shuffle: the first `count` entries are a uniform draw.
+            for i in 0..count {
+                let j = i + (rng.next_u64() % (m - i) as u64) as usize;
+                order.swap(i, j);
+            }
+            let start = pixels.len();
+            pixels.extend_from_slice(&order[..count]);
+            pixels[start..].sort_unstable();
+        }
+        PixelSample { shape: PatchShape { patch: side, ..full }, full, pixels }
+    }
+
+    fn count(&self) -> usize {
+        self.shape.pixels()
+    }
+
+    /// The drawn pixels' points (`[n, 3, count]`) and logits (`[n, d, count]`).
+    fn gather(&self, points: &[f32], logits: &[f32]) -> (Vec<f32>, Vec<f32>) {
+        let (m, c) = (self.full.pixels(), self.count());
+        let pick = |src: &[f32], channels: usize| -> Vec<f32> {
+            let mut out = Vec::with_capacity(self.full.n_patches * channels * c);
+            for (k, drawn) in self.pixels.chunks(c).enumerate() {
+                for ch in 0..channels {
+                    let row = &src[(k * channels + ch) * m..(k * channels + ch + 1) * m];
+                    out.extend(drawn.iter().map(|&p| row[p]));
+                }
+            }
+            out
+        };
+        (pick(points, 3), pick(logits, self.full.d_seg))
+    }
+
+    /// Adds the gathered batch's logit gradient into the full batch's at the drawn pixels.
+    fn scatter_add(&self, grad: &[f32], full_grad: &mut [f32]) {
+        let (m, c, d) = (self.full.pixels(), self.count(), self.full.d_seg);
+        for (k, drawn) in self.pixels.chunks(c).enumerate() {
+            for ch in 0..d {
+                let src = &grad[(k * d + ch) * c..(k * d + ch + 1) * c];
+                let dst = &mut full_grad[(k * d + ch) * m..(k * d + ch + 1) * m];
+                for (&p, &g) in drawn.iter().zip(src) {
+                    dst[p] += g;
+                }
+            }
+        }
     }
 }
 
@@ -786,6 +889,99 @@ mod tests {
         assert_eq!(v1, v2);
         assert_eq!(g1, g2);
         assert_eq!(v1.terms.len(), 2);
+    }
+
+    /// The sampled loss of one draw, with the pixels it drew (drawn again from the same seed).
+    fn sampled(case: &Case, side: usize, seed: u64) -> (LossValue, Vec<f32>, PixelSample) {
+        let cfg = GeometryConfig { samples: side, ..Default::default() };
+        let batch = PatchBatch {
+            n_patches: case.shape.n_patches,
+            patch: case.shape.patch,
+            d_seg: case.shape.d_seg,
+            logits: &case.logits,
+            points: &case.points,
+            features: &[],
+            negatives: &case.neg,
+        };
+        let mut grad = vec![0.0f32; case.logits.len()];
+        let value = cfg.build().expect("builds").loss_and_grad(
+            &batch,
+            &mut rand::rngs::StdRng::seed_from_u64(seed),
+            1.0,
+            &mut grad,
+        );
+        let drawn = PixelSample::draw(case.shape, side, &mut rand::rngs::StdRng::seed_from_u64(seed));
+        (value, grad, drawn)
+    }
+
+    #[test]
+    fn sampled_pixels_are_the_loss_of_the_drawn_pixels_and_only_they_get_gradient() {
+        let case = random_case(5, 4, 2, 12);
+        let (value, grad, drawn) = sampled(&case, 5, 9);
+        let m = case.shape.pixels();
+        for patch in drawn.pixels.chunks(25) {
+            assert!(patch.windows(2).all(|w| w[0] < w[1]), "pixels drawn twice: {patch:?}");
+            assert!(patch.iter().all(|&p| p < m));
+        }
+        let (points, logits) = drawn.gather(&case.points, &case.logits);
+        let mut small_grad = vec![0.0f32; logits.len()];
+        let expected = geometry_loss(
+            &GeometryConfig::default(),
+            &points,
+            &logits,
+            drawn.shape,
+            &case.neg,
+            1.0,
+            Some(&mut small_grad),
+        );
+        assert_eq!(value, expected);
+        let mut full = vec![0.0f32; case.logits.len()];
+        drawn.scatter_add(&small_grad, &mut full);
+        assert_eq!(grad, full);
+        let touched = grad.iter().filter(|g| **g != 0.0).count();
+        assert!(touched > 0 && touched <= 4 * 2 * 25, "{touched} logits got a gradient");
+    }
+
+    #[test]
+    fn sampled_pixels_estimate_the_all_pairs_gradient() {
+        let case = random_case(6, 4, 2, 12);
+        let mut full = vec![0.0f32; case.logits.len()];
+        geometry_loss(
+            &GeometryConfig::default(),
+            &case.points,
+            &case.logits,
+            case.shape,
+            &case.neg,
+            1.0,
+            Some(&mut full),
+        );
+        let (side, draws) = (6, 2000);
+        let (mut sum, mut sum_sq) = (vec![0.0f64; full.len()], vec![0.0f64; full.len()]);
+        for seed in 0..draws {
+            for (i, g) in sampled(&case, side, seed).1.into_iter().enumerate() {
+                sum[i] += f64::from(g);
+                sum_sq[i] += f64::from(g) * f64::from(g);
+            }
+        }
+        let n = draws as f64;
+        let (mut error, mut spread, mut norm) = (0.0f64, 0.0f64, 0.0f64);
+        for i in 0..full.len() {
+            let mean = sum[i] / n;
+            error += (mean - f64::from(full[i])).powi(2);
+            spread += (sum_sq[i] / n - mean * mean) / (n - 1.0);
+            norm += f64::from(full[i]).powi(2);
+        }
+        // A pair of distinct pixels is drawn with probability s²(s²−1)/(m(m−1)) and weighs
+        // 1/s² against 1/m²: the expected gradient is (1 − 1/s²)/(1 − 1/m) of the full one,
+        // plus the drawn pixels' own means in the centring, also of order 1/s².
+        let bias = 2.0 / (side * side) as f64 * norm.sqrt();
+        assert!(
+            error.sqrt() <= 4.0 * spread.sqrt() + bias,
+            "mean gradient off by {} (norm {}, standard error {}, bias bound {bias})",
+            error.sqrt(),
+            norm.sqrt(),
+            spread.sqrt()
+        );
     }
 
     #[test]

@@ -1,5 +1,6 @@
 //! Time of stage 2's losses at the main job's sizes (8 patches of 64x64 rays, 2 logit
-//! channels): the geometry loss over every pixel pair, and the appearance loss.
+//! channels): the geometry loss over every pixel pair and over its default drawn pixels
+//! (`samples`), and the appearance loss.
 //!
 //! `cargo run --release --manifest-path experiments/Cargo.toml --bin loss_time [repeats]`
 
@@ -7,7 +8,7 @@ use std::time::Instant;
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use sos_core::plugin::FeatureMap;
+use sos_core::plugin::{ContrastiveLossConfig, FeatureMap, PatchBatch};
 use sos_losses::appearance::appearance_loss;
 use sos_losses::geometry::geometry_loss;
 use sos_losses::{AppearanceConfig, GeometryConfig, PatchShape};
@@ -38,13 +39,29 @@ fn main() {
         let t = Instant::now();
         let g = geometry_loss(&geometry, &points, &logits, shape, &negatives, 1.0, Some(&mut grad));
         let t_geometry = t.elapsed().as_secs_f64();
+        let sampled = geometry.build().expect("default geometry loss");
+        let batch = PatchBatch {
+            n_patches: shape.n_patches,
+            patch: shape.patch,
+            d_seg: shape.d_seg,
+            logits: &logits,
+            points: &points,
+            features: &[],
+            negatives: &negatives,
+        };
+        let mut sampled_grad = vec![0.0f32; logits.len()];
+        let t = Instant::now();
+        sampled.loss_and_grad(&batch, &mut rng, 1.0, &mut sampled_grad);
+        let t_sampled = t.elapsed().as_secs_f64();
         let t = Instant::now();
         let a = appearance_loss(&appearance, &features, &logits, shape, &negatives, &u, &u, 1.0, Some(&mut grad));
         let t_appearance = t.elapsed().as_secs_f64();
         println!(
-            "geometry {:.3} s ({:.6}), appearance {:.4} s ({:.6}), grad sum {:.6e}",
+            "geometry: every pair {:.3} s ({:.6}), {}² drawn pixels {:.4} s; appearance {:.4} s ({:.6}), grad sum {:.6e}",
             t_geometry,
             g.total,
+            geometry.samples,
+            t_sampled,
             t_appearance,
             a.total,
             grad.iter().map(|&v| f64::from(v)).sum::<f64>()
