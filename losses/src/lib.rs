@@ -4,7 +4,7 @@
 //! - [`random`]: a random-derangement miner (`kind = "random"`, the reference's `--rand_neg`).
 //! - [`appearance`]: the STEGO-style appearance contrastive loss on sampled teacher features
 //!   (`kind = "appearance"`).
-//! - [`geometry`]: the inverse-L1 geometry contrastive loss over all pixel pairs
+//! - [`geometry`]: the inverse-L1 geometry contrastive loss over pixel pairs (drawn, or all)
 //!   (`kind = "geometry"`), plus the depth clip the renderer applies.
 //!
 //! The numerics follow the reference implementation (see the reference spec, §5–§7, §12, §14).

@@ -127,7 +127,7 @@ pub struct SegmentConfig {
 impl Default for SegmentConfig {
     fn default() -> Self {
         SegmentConfig {
-            steps: 300,
+            steps: 100,
             patches: 8,
             patch_size: 64,
             stride: 6,

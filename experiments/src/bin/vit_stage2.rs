@@ -3,7 +3,7 @@
 //! `segment.offset_grid`, for `teacher_source = "rendered"` and `"captured"`.
 //!
 //! `cargo run --release --manifest-path experiments/Cargo.toml --bin vit_stage2 [STAGE1_STEPS] [TIMED_STEPS] [--run STEPS] [--miou STEPS]`
-//! (defaults 600, 10 and a run of 300 steps, the default `segment.steps`). A short stage 1 on
+//! (defaults 600, 10 and a run of 300 steps). A short stage 1 on
 //! the built-in synthetic scene (400x300, 35 training views), then:
 //! - the cache hit rate of a stage-2 run of RUN steps (8 patches of 64x64 rays per step), over
 //!   the whole run and over its second half, with the default offset grid and with any-pixel
