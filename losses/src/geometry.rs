@@ -876,19 +876,25 @@ mod tests {
         };
         let mut g1 = vec![0.0f32; case.logits.len()];
         let v1 = loss.loss_and_grad(&batch, &mut rand::rngs::StdRng::seed_from_u64(0), 1.0, &mut g1);
-        let mut g2 = vec![0.0f32; case.logits.len()];
-        let v2 = geometry_loss(
+        let (v2, g2) = all_pairs(&case);
+        assert_eq!(v1, v2);
+        assert_eq!(g1, g2);
+        assert_eq!(v1.terms.len(), 2);
+    }
+
+    /// The default loss over every pixel pair, with its logit gradient.
+    fn all_pairs(case: &Case) -> (LossValue, Vec<f32>) {
+        let mut grad = vec![0.0f32; case.logits.len()];
+        let value = geometry_loss(
             &GeometryConfig::default(),
             &case.points,
             &case.logits,
             case.shape,
             &case.neg,
             1.0,
-            Some(&mut g2),
+            Some(&mut grad),
         );
-        assert_eq!(v1, v2);
-        assert_eq!(g1, g2);
-        assert_eq!(v1.terms.len(), 2);
+        (value, grad)
     }
 
     /// The sampled loss of one draw, with the pixels it drew (drawn again from the same seed).
@@ -945,16 +951,7 @@ mod tests {
     #[test]
     fn sampled_pixels_estimate_the_all_pairs_gradient() {
         let case = random_case(6, 4, 2, 12);
-        let mut full = vec![0.0f32; case.logits.len()];
-        geometry_loss(
-            &GeometryConfig::default(),
-            &case.points,
-            &case.logits,
-            case.shape,
-            &case.neg,
-            1.0,
-            Some(&mut full),
-        );
+        let full = all_pairs(&case).1;
         let (side, draws) = (6, 2000);
         let (mut sum, mut sum_sq) = (vec![0.0f64; full.len()], vec![0.0f64; full.len()]);
         for seed in 0..draws {
