@@ -94,7 +94,7 @@ impl GeometryConfig {
 
 sos_core::plugin_kind! {
     kind: "geometry",
-    summary: "inverse-L1 correlation loss between rendered 3D points and logits over pixel pairs (32² drawn pixels per patch, or all)",
+    summary: "inverse-L1 correlation loss between rendered 3D points and logits over the pairs of pixels drawn from each patch each step (or of all its pixels)",
     default: || Box::new(GeometryConfig::default()),
     impl ContrastiveLossConfig for GeometryConfig {
         fn build(&self) -> Result<Box<dyn ContrastiveLoss>, BuildError> {

@@ -34,21 +34,21 @@ fn main() {
     let (geometry, appearance) = (GeometryConfig::default(), AppearanceConfig::default());
     let u: Vec<[f32; 2]> =
         (0..shape.n_patches * 121).map(|_| [rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0)]).collect();
+    let sampled = geometry.build().expect("default geometry loss");
+    let batch = PatchBatch {
+        n_patches: shape.n_patches,
+        patch: shape.patch,
+        d_seg: shape.d_seg,
+        logits: &logits,
+        points: &points,
+        features: &[],
+        negatives: &negatives,
+    };
     for _ in 0..repeats {
         let mut grad = vec![0.0f32; logits.len()];
         let t = Instant::now();
         let g = geometry_loss(&geometry, &points, &logits, shape, &negatives, 1.0, Some(&mut grad));
         let t_geometry = t.elapsed().as_secs_f64();
-        let sampled = geometry.build().expect("default geometry loss");
-        let batch = PatchBatch {
-            n_patches: shape.n_patches,
-            patch: shape.patch,
-            d_seg: shape.d_seg,
-            logits: &logits,
-            points: &points,
-            features: &[],
-            negatives: &negatives,
-        };
         let mut sampled_grad = vec![0.0f32; logits.len()];
         let t = Instant::now();
         sampled.loss_and_grad(&batch, &mut rng, 1.0, &mut sampled_grad);
