@@ -49,9 +49,31 @@ fn teacher_cells_follow_the_patch_and_set_keys_are_kept() {
 #[test]
 fn without_stage_two_nothing_of_it_is_derived() {
     let s = session("[scene]\nkind = \"synthetic\"\nwidth = 100\nheight = 75\nviews = 4\n[segment]\nsteps = 0\n");
-    // The memory budget bounds stage-1 renders too; nothing of stage 2 or its teacher is derived.
+    // The memory budget and the frozen renders' samples serve stage-1 evaluation too; nothing
+    // of stage 2 or its teacher is derived.
     let keys: Vec<&str> = s.derived.iter().map(|d| d.key.as_str()).collect();
-    assert_eq!(keys, ["render.memory_gib"], "{:?}", s.derived);
+    assert_eq!(keys, ["render.memory_gib", "render.samples_per_ray"], "{:?}", s.derived);
+}
+
+#[test]
+fn frozen_renders_take_one_sample_per_grid_cell_at_most_the_training_count() {
+    let base = "[scene]\nkind = \"synthetic\"\nwidth = 100\nheight = 75\nviews = 4\n";
+    let grid = "[field]\nkind = \"voxel-grid\"\nresolution = [64, 96, 80]\n";
+    let s = session(&format!("{base}{grid}"));
+    assert_eq!(derived(&s, "render.samples_per_ray"), Some("95"), "the finest axis has 95 cells");
+    assert_eq!(s.config.render.samples_per_ray, Some(95));
+    let s = session(&format!("{base}{grid}[train]\nsamples_per_ray = 40\n"));
+    assert_eq!(derived(&s, "render.samples_per_ray"), Some("40"), "never more than training draws");
+    let s = session(&format!("{base}{grid}[render]\nsamples_per_ray = 300\n"));
+    assert_eq!(derived(&s, "render.samples_per_ray"), None, "a set count is kept");
+    assert_eq!(s.config.render.samples_per_ray, Some(300));
+    let s = session(&format!("{base}[field]\nkind = \"nerf\"\n"));
+    assert_eq!(derived(&s, "render.samples_per_ray"), None, "a network has no cells to count");
+    for bad in ["0", "1", "5000"] {
+        let text = format!("[scene]\nkind = \"synthetic\"\n[render]\nsamples_per_ray = {bad}\n");
+        let err = sos_core::config::RunConfig::parse(&text, std::path::Path::new("bad.toml")).expect_err(bad);
+        assert!(err.to_string().contains("render.samples_per_ray"), "{bad}: {err}");
+    }
 }
 
 #[test]

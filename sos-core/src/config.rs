@@ -365,7 +365,7 @@ impl Default for TrainConfig {
             steps: 3000,
             rays_per_step: 2048,
             final_lr_factor: 0.1,
-            samples_per_ray: 384,
+            samples_per_ray: 256,
             early_stop: 1e-4,
             sample_colour_weight: 0.1,
             distortion_weight: 0.0,
@@ -398,11 +398,17 @@ pub struct RenderConfig {
     /// not results. Unset: derived from the machine's memory.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub memory_gib: Option<f64>,
+    /// Candidate samples per ray across the extent in frozen renders (views, masks, stage 2),
+    /// scaled down while a grid is coarse as in training. Unset: one per cell along the
+    /// field's finest grid axis, at most `train.samples_per_ray` (fields without a grid:
+    /// `train.samples_per_ray`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub samples_per_ray: Option<usize>,
 }
 
 impl Default for RenderConfig {
     fn default() -> Self {
-        RenderConfig { chunk: 16384, test_views: true, camera_path: false, memory_gib: None }
+        RenderConfig { chunk: 16384, test_views: true, camera_path: false, memory_gib: None, samples_per_ray: None }
     }
 }
 
@@ -595,6 +601,9 @@ impl RunConfig {
         }
         if self.render.memory_gib.is_some_and(|g| !(g.is_finite() && g > 0.0 && g <= 1e6)) {
             return Err(invalid("render.memory_gib", "must be a positive number of GiB"));
+        }
+        if self.render.samples_per_ray.is_some_and(|n| !(2..=MAX_SAMPLES_PER_RAY).contains(&n)) {
+            return Err(invalid("render.samples_per_ray", &format!("must be in 2..={MAX_SAMPLES_PER_RAY}")));
         }
         if !(1..=MAX_CHUNK).contains(&self.render.chunk) {
             return Err(invalid("render.chunk", &format!("must be in 1..={MAX_CHUNK}")));

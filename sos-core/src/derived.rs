@@ -6,7 +6,7 @@
 
 /// Bumped whenever a derivation rule or its constants change, so that cached benchmark
 /// results made under the old rules are not reused (`sos bench` hashes it with each run).
-pub const DERIVATION_VERSION: u32 = 3;
+pub const DERIVATION_VERSION: u32 = 4;
 
 use std::fmt;
 use std::path::Path;

@@ -5,7 +5,7 @@ use sos_core::camera::Vec3;
 use sos_core::encoding::{positional_encoding, positional_encoding_dim, sh_basis, sh_coefficients};
 use sos_core::nn::activation::{sigmoid, softplus};
 use sos_core::nn::vector_math;
-use sos_core::plugin::{state, CoarseToFine, FieldTape, RadianceField, Regularized};
+use sos_core::plugin::{state, CoarseToFine, FieldTape, FrozenPass, RadianceField, Regularized};
 use sos_core::render::contraction::Contraction;
 use sos_core::scene::SceneExtent;
 
@@ -420,6 +420,10 @@ impl RadianceField for VoxelGridField {
         Some(self)
     }
 
+    fn frozen_pass(&self) -> Option<&dyn FrozenPass> {
+        Some(self)
+    }
+
     fn coarse_to_fine_mut(&mut self) -> Option<&mut dyn CoarseToFine> {
         Some(self)
     }
@@ -501,6 +505,20 @@ impl CoarseToFine for VoxelGridField {
         let now: usize = self.grid.res.iter().sum();
         let full: usize = self.config.resolution.iter().sum();
         now as f32 / full as f32
+    }
+
+    fn final_cells_across(&self) -> Option<usize> {
+        self.config.resolution.iter().max().map(|&vertices| vertices.saturating_sub(1).max(1))
+    }
+}
+
+/// The plain passes, but early termination in a frozen render without a density pass: the
+/// density interpolates the same eight corners as the colour, so a density-only pass costs
+/// about as much as the full one, while the samples behind each ray's opaque point are few
+/// (the occupancy grid has already dropped empty space).
+impl FrozenPass for VoxelGridField {
+    fn early_termination_pass(&self) -> bool {
+        false
     }
 }
 

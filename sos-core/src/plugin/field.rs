@@ -282,6 +282,18 @@ pub trait FrozenPass: RadianceField {
         0
     }
 
+    /// Whether a frozen render that only terminates rays early (no weight threshold) finds
+    /// where each ray turns opaque in a density-only pass first, so that the full pass runs on
+    /// the samples before that point alone. That pays when the density is much cheaper than
+    /// the colour (a network's view branch); a field whose density costs about as much as its
+    /// colour (a grid: both interpolate the same corners) answers `false`, and its full pass
+    /// runs on every candidate instead, one pass over the samples rather than two. What lies
+    /// behind the point where the transmittance falls below `early_stop` adds at most that
+    /// much to a pixel.
+    fn early_termination_pass(&self) -> bool {
+        true
+    }
+
     /// [`RadianceField::density`] that also writes each sample's state,
     /// `state[n * density_state_dim]`.
     fn density_with_state(&self, positions: &[Vec3], density: &mut [f32], _state: &mut [f32]) {
@@ -313,6 +325,14 @@ pub trait CoarseToFine: Send + Sync {
     /// resolution); the renderer scales the number of candidate samples by it, so coarse
     /// stages are cheap.
     fn detail_fraction(&self) -> f32;
+
+    /// Cells along the most finely divided axis of the field's final grid, where its detail is
+    /// that of a grid it interpolates (`None`: not so bounded). A frozen render needs about
+    /// one candidate per cell: more samples of an interpolated cell add little to a midpoint
+    /// quadrature.
+    fn final_cells_across(&self) -> Option<usize> {
+        None
+    }
 }
 
 /// Capability: regularisers the field adds to its own gradients (e.g. total variation).
@@ -355,6 +375,12 @@ pub mod plain {
     ) {
         field.forward(positions, directions, density, rgb, false);
         field.seg_input(positions, seg_input);
+    }
+
+    /// Whether a frozen render's early termination takes a density-only pass (see
+    /// [`FrozenPass::early_termination_pass`]; `true` without a fused pass).
+    pub fn early_termination_pass(field: &dyn RadianceField) -> bool {
+        field.frozen_pass().is_none_or(|fast| fast.early_termination_pass())
     }
 
     /// Width of the state [`density_with_state`] keeps per sample (0 without a fused pass).
@@ -417,6 +443,11 @@ pub mod plain {
     /// Fraction of its final detail the field resolves (1 for fixed parametrisations).
     pub fn detail_fraction(field: &dyn RadianceField) -> f32 {
         field.coarse_to_fine().map_or(1.0, |c| c.detail_fraction())
+    }
+
+    /// Cells along the most finely divided axis of the field's final grid (`None`: no grid).
+    pub fn final_cells_across(field: &dyn RadianceField) -> Option<usize> {
+        field.coarse_to_fine().and_then(|c| c.final_cells_across())
     }
 
     /// Applies the field's regularisers; their value (0 without any).

@@ -257,7 +257,10 @@ fn render_impl(
     rng: &mut impl Rng,
 ) -> Rendered {
     let timer = std::time::Instant::now();
-    let prune = options.early_stop > 0.0 || options.min_weight > 0.0;
+    // A frozen render that would only terminate rays early skips the density pass where the
+    // field says that pass costs more than it saves.
+    let terminate = options.early_stop > 0.0 && (record || plain::early_termination_pass(field));
+    let prune = terminate || options.min_weight > 0.0;
     let keeps_state = !record && plain::density_state_dim(field) > 0 && options.memory.density_state() > 0;
     if prune && !keeps_state && plain::hierarchical(field).is_none() {
         let (samples, pruned) = prune_in_blocks(field, ctx, rays, options, rng);
@@ -718,11 +721,19 @@ mod tests {
         with_state: bool,
         /// Samples whose colour came from the state.
         from_state: AtomicUsize,
+        /// What [`FrozenPass::early_termination_pass`] answers.
+        termination_pass: bool,
     }
 
     impl Ball {
         fn new(hierarchical: Option<Hierarchical>, with_state: bool) -> Self {
-            Ball { evaluated: AtomicUsize::new(0), hierarchical, with_state, from_state: AtomicUsize::new(0) }
+            Ball {
+                evaluated: AtomicUsize::new(0),
+                hierarchical,
+                with_state,
+                from_state: AtomicUsize::new(0),
+                termination_pass: true,
+            }
         }
 
         fn colour(p: Vec3) -> [f32; 3] {
@@ -807,6 +818,9 @@ mod tests {
     }
 
     impl crate::plugin::field::FrozenPass for Ball {
+        fn early_termination_pass(&self) -> bool {
+            self.termination_pass
+        }
         fn density_state_dim(&self) -> usize {
             if self.with_state {
                 3
@@ -1045,6 +1059,30 @@ mod tests {
             RenderOptions { march, early_stop: 0.0, min_weight: 1e-9, memory: MemoryBudget::unlimited() },
         );
         assert!(evaluated + 100 * hits < all, "evaluated {evaluated} of {all} densities ({hits} rays hit)");
+    }
+
+    /// A field whose density pass does not pay terminates a frozen render's rays without one:
+    /// its colours are those of the render without early termination, bit for bit. A weight
+    /// threshold, or a render for training, still takes the pass.
+    #[test]
+    fn early_termination_without_a_density_pass_where_the_field_says_it_does_not_pay() {
+        let field = Ball { termination_pass: false, ..Ball::new(None, false) };
+        let march = MarchOptions { steps: 256, stratified: false };
+        let options =
+            |early_stop, min_weight| RenderOptions { march, early_stop, min_weight, memory: MemoryBudget::unlimited() };
+        let (full, _) = colours(&field, options(0.0, 0.0));
+        let (terminated, evaluated) = colours(&field, options(1e-4, 0.0));
+        assert_eq!(evaluated, 0, "no density-only pass");
+        for (a, b) in full.iter().zip(&terminated) {
+            assert_eq!((a.rgb.map(f32::to_bits), a.acc.to_bits()), (b.rgb.map(f32::to_bits), b.acc.to_bits()));
+        }
+        let (_, thresholded) = colours(&field, options(1e-4, 1e-4));
+        assert!(thresholded > 0, "a weight threshold needs the density pass");
+        let (extent, contraction, rays) = setup();
+        let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
+        field.evaluated.store(0, Ordering::Relaxed);
+        render(&field, ctx, &rays, options(1e-4, 0.0), true, &mut rand_chacha::ChaCha8Rng::seed_from_u64(0));
+        assert!(field.evaluated.load(Ordering::Relaxed) > 0, "training renders keep the density pass");
     }
 
     #[test]

@@ -87,9 +87,10 @@ impl Session {
                 message,
             })
             .map_err(in_config)?;
-        let derived = derive_settings(&mut config, config_dir, &scene);
+        let mut derived = derive_settings(&mut config, config_dir, &scene);
         crate::train::memory_check::check(&config, source)?;
         let field = config.field.build(&scene.extent, config.seed)?;
+        derived.extend(Session::derive_frozen_samples(&mut config, field.as_ref()));
         let field_kind = kind_of(&config.field);
         let contraction = Contraction::new(&scene.extent);
         let occupancy =
@@ -109,6 +110,24 @@ impl Session {
             rng_position: None,
             converged_at: None,
         })
+    }
+
+    /// Fills `render.samples_per_ray` from the field's grid when the config leaves it unset:
+    /// one candidate per cell of the finest axis, at most the training count. Training draws
+    /// its samples at random inside their intervals and needs them denser; a frozen render's
+    /// midpoint samples of a trilinear grid gain little beyond one per cell.
+    fn derive_frozen_samples(config: &mut RunConfig, field: &dyn RadianceField) -> Option<DerivedSetting> {
+        if config.render.samples_per_ray.is_some() {
+            return None;
+        }
+        let cells = plain::final_cells_across(field)?;
+        let samples = cells.clamp(2, config.train.samples_per_ray.max(2));
+        config.render.samples_per_ray = Some(samples);
+        Some(DerivedSetting::new(
+            "render.samples_per_ray",
+            samples,
+            format!("one per cell along the field's finest grid axis ({cells} cells), at most train.samples_per_ray"),
+        ))
     }
 
     /// An empty-space grid for `config`'s stage 1 on `scene` whose cells count as occupied when
@@ -271,7 +290,14 @@ impl Session {
     /// the field's current detail, so coarse stages of a growing grid march coarsely.
     pub fn render_options(&self, stratified: bool) -> RenderOptions {
         let t = &self.config.train;
-        let steps = ((t.samples_per_ray as f32 * plain::detail_fraction(self.field.as_ref())).round() as usize).max(8);
+        // Frozen renders take their own count (see `derive_frozen_samples`); both shrink while
+        // a grid is coarse.
+        let full = if stratified {
+            t.samples_per_ray
+        } else {
+            self.config.render.samples_per_ray.unwrap_or(t.samples_per_ray)
+        };
+        let steps = ((full as f32 * plain::detail_fraction(self.field.as_ref())).round() as usize).max(8);
         RenderOptions {
             march: MarchOptions { steps, stratified },
             early_stop: t.early_stop,
