@@ -220,6 +220,43 @@ fn evaluate(
     (density, rgb, tape, Vec::new())
 }
 
+/// What [`evaluate`] returns: density, colour, tape and segmentation input per sample.
+type Evaluated = (Vec<f32>, Vec<[f32; 3]>, FieldTape, Vec<f32>);
+
+/// The samples before each ray terminates, cut from a full pass over every candidate by the
+/// density pass's rule: a candidate counts while the optical depth before it is at most
+/// `-ln early_stop`. The kept rows are moved to the front of each per-sample array in place.
+fn terminated(candidates: Samples, out: Evaluated, early_stop: f32) -> (Samples, Evaluated) {
+    let (mut density, mut rgb, tape, mut seg) = out;
+    debug_assert!(tape.is_none(), "only frozen renders skip the density pass while terminating rays");
+    let stop_at = -early_stop.ln();
+    let mut keep = vec![false; candidates.len()];
+    for r in 0..candidates.n_rays() {
+        let mut optical = 0.0f32;
+        for i in candidates.range(r) {
+            if optical > stop_at {
+                break;
+            }
+            keep[i] = true;
+            optical += density[i] * candidates.delta[i];
+        }
+    }
+    let (samples, kept) = candidates.filter(|i| keep[i]);
+    let dim = if density.is_empty() { 0 } else { seg.len() / density.len() };
+    for (j, &i) in kept.iter().enumerate() {
+        let i = i as usize;
+        density[j] = density[i];
+        rgb[j] = rgb[i];
+        if dim > 0 {
+            seg.copy_within(i * dim..(i + 1) * dim, j * dim);
+        }
+    }
+    density.truncate(kept.len());
+    rgb.truncate(kept.len());
+    seg.truncate(kept.len() * dim);
+    (samples, (density, rgb, tape, seg))
+}
+
 /// [`evaluate`] of the kept samples of a frozen render from its density pass: their density
 /// as the pass found it, and their colour (and segmentation input) from the field's state.
 /// `seg` is the segmentation input's buffer (empty: none wanted).
@@ -278,18 +315,21 @@ fn render_impl(
     let n_candidates = candidates.len();
     let seg_limits = SegLimits::new(field, n_candidates, seg_budget);
     let (samples, (density, rgb, tape, seg_input), timing) = if !prune {
-        // Nothing to decide from density alone: skip the density pass (for network fields it
-        // costs nearly as much as the full pass).
+        // Nothing to decide from density alone, or nothing worth a pass of its own: skip the
+        // density pass (for network fields it costs nearly as much as the full pass). Rays the
+        // field would have terminated early are cut after the full pass, by the same rule.
         let out = evaluate(field, &candidates, record, seg_limits, buffers);
+        let (samples, out) =
+            if options.early_stop > 0.0 { terminated(candidates, out, options.early_stop) } else { (candidates, out) };
         let timing = RenderTiming {
             march: t_march,
             forward: timer.elapsed().as_secs_f64() - t_march,
             candidates: n_candidates,
             evaluated: n_candidates,
-            kept: n_candidates,
+            kept: samples.len(),
             ..RenderTiming::default()
         };
-        (candidates, out, timing)
+        (samples, out, timing)
     } else {
         // Density-only pass to find where each ray terminates and which weights matter; a
         // frozen render also takes the field's state at the kept samples from it.
@@ -1061,19 +1101,34 @@ mod tests {
         assert!(evaluated + 100 * hits < all, "evaluated {evaluated} of {all} densities ({hits} rays hit)");
     }
 
-    /// A field whose density pass does not pay terminates a frozen render's rays without one:
-    /// its colours are those of the render without early termination, bit for bit. A weight
-    /// threshold, or a render for training, still takes the pass.
+    /// A field whose density pass does not pay terminates a frozen render's rays without one,
+    /// cutting them after the full pass: the same samples and colours, bit for bit, as the
+    /// render whose density pass made the cut. A weight threshold, or a render for training,
+    /// still takes the pass.
     #[test]
     fn early_termination_without_a_density_pass_where_the_field_says_it_does_not_pay() {
         let field = Ball { termination_pass: false, ..Ball::new(None, false) };
         let march = MarchOptions { steps: 256, stratified: false };
         let options =
             |early_stop, min_weight| RenderOptions { march, early_stop, min_weight, memory: MemoryBudget::unlimited() };
-        let (full, _) = colours(&field, options(0.0, 0.0));
-        let (terminated, evaluated) = colours(&field, options(1e-4, 0.0));
-        assert_eq!(evaluated, 0, "no density-only pass");
-        for (a, b) in full.iter().zip(&terminated) {
+        let frozen = |field: &Ball| {
+            let (extent, contraction, rays) = setup();
+            let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
+            field.evaluated.store(0, Ordering::Relaxed);
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+            let mut r = render(field, ctx, &rays, options(1e-4, 0.0), false, &mut rng);
+            r.composite();
+            (r, field.evaluated.load(Ordering::Relaxed))
+        };
+        let (with_pass, passed) = frozen(&Ball::new(None, false));
+        let (without, evaluated) = frozen(&field);
+        assert!(passed > 0 && evaluated == 0, "density-only evaluations: {passed} with the pass, {evaluated} without");
+        assert_eq!(without.samples.ray_start, with_pass.samples.ray_start, "the same samples per ray");
+        assert_eq!(without.samples.t, with_pass.samples.t);
+        let hits = without.colours.iter().filter(|c| c.acc > 0.5).count();
+        let (kept, candidates) = (without.timing.kept, without.timing.candidates);
+        assert!(hits > 20 && kept + 100 * hits < candidates, "{kept} of {candidates} kept, {hits} rays hit the ball");
+        for (a, b) in without.colours.iter().zip(&with_pass.colours) {
             assert_eq!((a.rgb.map(f32::to_bits), a.acc.to_bits()), (b.rgb.map(f32::to_bits), b.acc.to_bits()));
         }
         let (_, thresholded) = colours(&field, options(1e-4, 1e-4));
