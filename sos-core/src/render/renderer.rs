@@ -225,35 +225,55 @@ type Evaluated = (Vec<f32>, Vec<[f32; 3]>, FieldTape, Vec<f32>);
 
 /// The samples before each ray terminates, cut from a full pass over every candidate by the
 /// density pass's rule: a candidate counts while the optical depth before it is at most
-/// `-ln early_stop`. The kept rows are moved to the front of each per-sample array in place.
-fn terminated(candidates: Samples, out: Evaluated, early_stop: f32) -> (Samples, Evaluated) {
+/// `-ln early_stop`. Each ray keeps a prefix of its samples, moved down in place in every
+/// per-sample array.
+fn terminated(mut samples: Samples, out: Evaluated, early_stop: f32) -> (Samples, Evaluated) {
     let (mut density, mut rgb, tape, mut seg) = out;
     debug_assert!(tape.is_none(), "only frozen renders skip the density pass while terminating rays");
     let stop_at = -early_stop.ln();
-    let mut keep = vec![false; candidates.len()];
-    for r in 0..candidates.n_rays() {
+    let dim = if density.is_empty() { 0 } else { seg.len() / density.len() };
+    let mut start = samples.ray_start.first().map_or(0, |&s| s as usize);
+    let mut end = start;
+    for r in 0..samples.n_rays() {
+        let stop = samples.ray_start[r + 1] as usize;
         let mut optical = 0.0f32;
-        for i in candidates.range(r) {
+        let mut n = 0;
+        for i in start..stop {
             if optical > stop_at {
                 break;
             }
-            keep[i] = true;
-            optical += density[i] * candidates.delta[i];
+            optical += density[i] * samples.delta[i];
+            n += 1;
+        }
+        let moved = start..start + n;
+        samples.t.copy_within(moved.clone(), end);
+        samples.delta.copy_within(moved.clone(), end);
+        samples.positions.copy_within(moved.clone(), end);
+        samples.directions.copy_within(moved.clone(), end);
+        for extra in [&mut samples.s, &mut samples.skipped_tau] {
+            if !extra.is_empty() {
+                extra.copy_within(moved.clone(), end);
+            }
+        }
+        density.copy_within(moved.clone(), end);
+        rgb.copy_within(moved.clone(), end);
+        seg.copy_within(moved.start * dim..moved.end * dim, end * dim);
+        end += n;
+        start = stop;
+        samples.ray_start[r + 1] = end as u32;
+    }
+    for v in [&mut samples.t, &mut samples.delta, &mut density] {
+        v.truncate(end);
+    }
+    samples.positions.truncate(end);
+    samples.directions.truncate(end);
+    rgb.truncate(end);
+    for extra in [&mut samples.s, &mut samples.skipped_tau] {
+        if !extra.is_empty() {
+            extra.truncate(end);
         }
     }
-    let (samples, kept) = candidates.filter(|i| keep[i]);
-    let dim = if density.is_empty() { 0 } else { seg.len() / density.len() };
-    for (j, &i) in kept.iter().enumerate() {
-        let i = i as usize;
-        density[j] = density[i];
-        rgb[j] = rgb[i];
-        if dim > 0 {
-            seg.copy_within(i * dim..(i + 1) * dim, j * dim);
-        }
-    }
-    density.truncate(kept.len());
-    rgb.truncate(kept.len());
-    seg.truncate(kept.len() * dim);
+    seg.truncate(end * dim);
     (samples, (density, rgb, tape, seg))
 }
 
