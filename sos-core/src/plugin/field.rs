@@ -378,7 +378,7 @@ pub mod plain {
     }
 
     /// Whether a frozen render's early termination takes a density-only pass (see
-    /// [`FrozenPass::early_termination_pass`]; `true` without a fused pass).
+    /// [`super::FrozenPass::early_termination_pass`]; `true` without a fused pass).
     pub fn early_termination_pass(field: &dyn RadianceField) -> bool {
         field.frozen_pass().is_none_or(|fast| fast.early_termination_pass())
     }
