@@ -117,7 +117,7 @@ pub fn density_pass(
         evaluated: 0,
     };
     // Optical depth at which the transmittance reaches `early_stop`.
-    let stop_at = if early_stop > 0.0 { -early_stop.ln() } else { f32::INFINITY };
+    let stop_at = stop_depth(early_stop);
     let end_of = |r: usize| ray_end(candidates, r);
     let mut rays: Vec<RayScan> = (0..candidates.n_rays())
         .map(|r| RayScan { cursor: candidates.ray_start[r] as usize, optical: 0.0, skipped: 0.0 })
@@ -171,6 +171,31 @@ pub fn density_pass(
     }
     pass.state = state;
     pass
+}
+
+/// Optical depth past which a ray terminates: where its transmittance falls below `early_stop`
+/// (0: never).
+fn stop_depth(early_stop: f32) -> f32 {
+    if early_stop > 0.0 {
+        -early_stop.ln()
+    } else {
+        f32::INFINITY
+    }
+}
+
+/// How many of one ray's samples, in order, come before it terminates by the pass's rule: each
+/// while the optical depth before it is at most `-ln early_stop`. A render that evaluated every
+/// candidate keeps these, and so keeps what the pass would have.
+pub fn samples_before_termination(sigma: &[f32], delta: &[f32], early_stop: f32) -> usize {
+    let stop_at = stop_depth(early_stop);
+    let mut optical = 0.0f32;
+    for (n, (&sigma, &delta)) in sigma.iter().zip(delta).enumerate() {
+        if optical > stop_at {
+            return n;
+        }
+        optical += sigma * delta;
+    }
+    sigma.len()
 }
 
 /// One past ray `r`'s last candidate.

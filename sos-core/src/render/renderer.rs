@@ -18,11 +18,11 @@ use crate::plugin::field::{plain, Hierarchical};
 use crate::plugin::{FieldTape, RadianceField};
 use crate::render::composite::{self, RayColour, RayGrad, RaySamples};
 use crate::render::contraction::Contraction;
-use crate::render::density_pass::{density_pass, DensityPass, KeptState};
+use crate::render::density_pass::{density_pass, samples_before_termination, DensityPass, KeptState};
 use crate::render::memory_budget::MemoryBudget;
 use crate::render::occupancy::OccupancyGrid;
 use crate::render::rays::RayBatch;
-use crate::render::sampler::{self, MarchOptions, Samples};
+use crate::render::sampler::{self, keep_ray_prefixes, MarchOptions, Samples};
 use crate::scene::SceneExtent;
 
 /// Rays per parallel marching task.
@@ -224,56 +224,22 @@ fn evaluate(
 type Evaluated = (Vec<f32>, Vec<[f32; 3]>, FieldTape, Vec<f32>);
 
 /// The samples before each ray terminates, cut from a full pass over every candidate by the
-/// density pass's rule: a candidate counts while the optical depth before it is at most
-/// `-ln early_stop`. Each ray keeps a prefix of its samples, moved down in place in every
-/// per-sample array.
+/// density pass's rule ([`samples_before_termination`]), each ray's prefix moved down in place.
 fn terminated(mut samples: Samples, out: Evaluated, early_stop: f32) -> (Samples, Evaluated) {
     let (mut density, mut rgb, tape, mut seg) = out;
     debug_assert!(tape.is_none(), "only frozen renders skip the density pass while terminating rays");
-    let stop_at = -early_stop.ln();
+    let kept: Vec<usize> = (0..samples.n_rays())
+        .map(|r| {
+            let range = samples.range(r);
+            samples_before_termination(&density[range.clone()], &samples.delta[range], early_stop)
+        })
+        .collect();
     let dim = if density.is_empty() { 0 } else { seg.len() / density.len() };
-    let mut start = samples.ray_start.first().map_or(0, |&s| s as usize);
-    let mut end = start;
-    for r in 0..samples.n_rays() {
-        let stop = samples.ray_start[r + 1] as usize;
-        let mut optical = 0.0f32;
-        let mut n = 0;
-        for i in start..stop {
-            if optical > stop_at {
-                break;
-            }
-            optical += density[i] * samples.delta[i];
-            n += 1;
-        }
-        let moved = start..start + n;
-        samples.t.copy_within(moved.clone(), end);
-        samples.delta.copy_within(moved.clone(), end);
-        samples.positions.copy_within(moved.clone(), end);
-        samples.directions.copy_within(moved.clone(), end);
-        for extra in [&mut samples.s, &mut samples.skipped_tau] {
-            if !extra.is_empty() {
-                extra.copy_within(moved.clone(), end);
-            }
-        }
-        density.copy_within(moved.clone(), end);
-        rgb.copy_within(moved.clone(), end);
-        seg.copy_within(moved.start * dim..moved.end * dim, end * dim);
-        end += n;
-        start = stop;
-        samples.ray_start[r + 1] = end as u32;
-    }
-    for v in [&mut samples.t, &mut samples.delta, &mut density] {
-        v.truncate(end);
-    }
-    samples.positions.truncate(end);
-    samples.directions.truncate(end);
-    rgb.truncate(end);
-    for extra in [&mut samples.s, &mut samples.skipped_tau] {
-        if !extra.is_empty() {
-            extra.truncate(end);
-        }
-    }
-    seg.truncate(end * dim);
+    let starts = &samples.ray_start;
+    keep_ray_prefixes(&mut density, starts, &kept, 1);
+    keep_ray_prefixes(&mut rgb, starts, &kept, 1);
+    keep_ray_prefixes(&mut seg, starts, &kept, dim);
+    samples.keep_ray_prefixes(&kept);
     (samples, (density, rgb, tape, seg))
 }
 

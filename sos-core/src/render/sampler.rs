@@ -95,6 +95,38 @@ impl Samples {
         }
         (out, kept)
     }
+
+    /// Keeps the first `kept[r]` samples of each ray `r`, in place (see [`keep_ray_prefixes`]).
+    pub fn keep_ray_prefixes(&mut self, kept: &[usize]) {
+        let starts = std::mem::take(&mut self.ray_start);
+        keep_ray_prefixes(&mut self.t, &starts, kept, 1);
+        keep_ray_prefixes(&mut self.delta, &starts, kept, 1);
+        keep_ray_prefixes(&mut self.positions, &starts, kept, 1);
+        keep_ray_prefixes(&mut self.directions, &starts, kept, 1);
+        for optional in [&mut self.s, &mut self.skipped_tau] {
+            if !optional.is_empty() {
+                keep_ray_prefixes(optional, &starts, kept, 1);
+            }
+        }
+        self.ray_start = std::iter::once(0)
+            .chain(kept.iter().scan(0u32, |end, &n| {
+                *end += n as u32;
+                Some(*end)
+            }))
+            .collect();
+    }
+}
+
+/// Keeps the first `kept[r]` samples of each ray `r` in `values` (`width` values a sample, the
+/// rays starting at `ray_start`, the first at 0), moved down in place.
+pub fn keep_ray_prefixes<T: Copy>(values: &mut Vec<T>, ray_start: &[u32], kept: &[usize], width: usize) {
+    let mut end = 0;
+    for (&start, &n) in ray_start.iter().zip(kept) {
+        let start = start as usize * width;
+        values.copy_within(start..start + n * width, end);
+        end += n * width;
+    }
+    values.truncate(end);
 }
 
 /// How candidates are spread along each ray.
