@@ -11,7 +11,15 @@ use sos_core::train::Session;
 /// A session of `field` on the `rig` camera rig with the extra `[field]` lines `field_keys`,
 /// training stage 1 for `steps` steps; its run folder, unique to `tag`, lies in Cargo's scratch
 /// folder for integration tests (`target/tmp`) and is emptied first, so reruns reuse it.
+///
+/// A voxel grid whose keys name no resolution gets [`TINY_GRID`]: the default 160³ grid is far
+/// finer than 40×30 views resolve, and each of its checkpoints would take 213 MB of disk.
 pub fn tiny_session(field: &str, rig: &str, field_keys: &str, steps: usize, tag: &str) -> Session {
+    let field_keys = if field == "voxel-grid" && !field_keys.contains("resolution") {
+        format!("{TINY_GRID}\n{field_keys}")
+    } else {
+        field_keys.to_string()
+    };
     let text = format!(
         r#"
 name = "tiny"
@@ -42,6 +50,10 @@ stride = 2
     let dir = scratch_dir(&format!("tiny-{field}-{tag}"));
     Session::from_config(config, &dir).unwrap()
 }
+
+/// The grid of a tiny voxel-grid session: about one vertex per pixel across the 40×30 views,
+/// grown coarse-to-fine on the default schedule.
+pub const TINY_GRID: &str = "resolution = [48, 48, 48]\ninitial_resolution = [16, 16, 16]";
 
 /// An empty folder `name` in Cargo's scratch folder for integration tests (`target/tmp`).
 pub fn scratch_dir(name: &str) -> std::path::PathBuf {
