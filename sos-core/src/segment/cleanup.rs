@@ -116,15 +116,60 @@ pub struct NearbyParts<'a> {
 /// than the continuity's largest step. Empty rays lie farthest of all.
 pub fn keep_nearby_parts(
     foreground: &[bool],
-    mut kept: Vec<bool>,
+    kept: Vec<bool>,
     width: usize,
     height: usize,
     parts: &NearbyParts,
     depth: DepthContinuity,
 ) -> Vec<bool> {
-    assert_eq!(foreground.len(), width * height, "mask size");
-    assert_eq!(kept.len(), foreground.len(), "kept size");
-    assert_eq!(parts.points.len(), foreground.len(), "points size");
+    add_regions(foreground, kept, width, height, parts, depth, |region, _, region_of| {
+        let (mut outline, mut behind) = (0usize, 0usize);
+        for &i in region {
+            for j in neighbours(i, width, height).filter(|&j| region_of[j] != region[0]) {
+                outline += 1;
+                behind += usize::from(depth.steps_back(i, j));
+            }
+        }
+        outline > 0 && behind as f64 >= f64::from(parts.min_standing_outline) * outline as f64
+    })
+}
+
+/// Adds to `kept` (the mask so far) every depth-continuous region of `others` of at least
+/// [`MIN_PART_PIXELS`] pixels that touches the mask and has a point within the radius of the
+/// focus: the parts that hold the object up. `others` are the pixels of the other clusters
+/// that lie clearly off the view's support planes, so a dark base that clustered with the
+/// ground it stands on is a region of its own there, while the ground and the shadows on it
+/// are not candidates at all. A base rises from the ground without stepping back from it, so
+/// unlike [`keep_nearby_parts`] no standing test applies.
+pub fn keep_attached_parts(
+    others: &[bool],
+    kept: Vec<bool>,
+    width: usize,
+    height: usize,
+    parts: &NearbyParts,
+    depth: DepthContinuity,
+) -> Vec<bool> {
+    add_regions(others, kept, width, height, parts, depth, |region, mask, _| {
+        region.iter().any(|&i| neighbours(i, width, height).any(|j| mask[j]))
+    })
+}
+
+/// Walks the depth-continuous regions of `candidates` outside `kept` and adds to `kept` each
+/// region of at least [`MIN_PART_PIXELS`] pixels with a point near the focus that `accept`
+/// takes. `accept` sees the region (its first pixel names it in the region map), the mask
+/// before any addition, and the region map (`usize::MAX` outside every region).
+fn add_regions(
+    candidates: &[bool],
+    mut kept: Vec<bool>,
+    width: usize,
+    height: usize,
+    parts: &NearbyParts,
+    depth: DepthContinuity,
+    accept: impl Fn(&[usize], &[bool], &[usize]) -> bool,
+) -> Vec<bool> {
+    assert_eq!(candidates.len(), width * height, "mask size");
+    assert_eq!(kept.len(), candidates.len(), "kept size");
+    assert_eq!(parts.points.len(), candidates.len(), "points size");
     let radius2 = parts.radius * parts.radius;
     let near = |i: usize| {
         parts.points[i].is_some_and(|p| {
@@ -132,10 +177,11 @@ pub fn keep_nearby_parts(
             dot(d, d) <= radius2
         })
     };
+    let mask = kept.clone();
     let mut visited = kept.clone();
-    let mut region_of = vec![usize::MAX; foreground.len()];
-    for start in 0..foreground.len() {
-        if !foreground[start] || visited[start] {
+    let mut region_of = vec![usize::MAX; candidates.len()];
+    for start in 0..candidates.len() {
+        if !candidates[start] || visited[start] {
             continue;
         }
         visited[start] = true;
@@ -146,24 +192,14 @@ pub fn keep_nearby_parts(
             let i = region[next];
             next += 1;
             for j in neighbours(i, width, height) {
-                if foreground[j] && !visited[j] && depth.joins(i, j) {
+                if candidates[j] && !visited[j] && depth.joins(i, j) {
                     visited[j] = true;
                     region_of[j] = start;
                     region.push(j);
                 }
             }
         }
-        if region.len() < MIN_PART_PIXELS || !region.iter().any(|&i| near(i)) {
-            continue;
-        }
-        let (mut outline, mut behind) = (0usize, 0usize);
-        for &i in &region {
-            for j in neighbours(i, width, height).filter(|&j| region_of[j] != start) {
-                outline += 1;
-                behind += usize::from(depth.steps_back(i, j));
-            }
-        }
-        if outline > 0 && behind as f64 >= f64::from(parts.min_standing_outline) * outline as f64 {
+        if region.len() >= MIN_PART_PIXELS && region.iter().any(|&i| near(i)) && accept(&region, &mask, &region_of) {
             for &i in &region {
                 kept[i] = true;
             }
@@ -264,6 +300,40 @@ mod tests {
         assert_eq!(keep_nearby_parts(&fg, none.clone(), w, h, &nearby(&points, 0.5), continuity), none);
         // Regions already kept stay kept.
         assert_eq!(keep_nearby_parts(&fg, fg.clone(), w, h, &nearby(&points, 0.5), continuity), fg);
+    }
+
+    #[test]
+    fn a_part_touching_the_mask_joins_it_and_parts_apart_far_or_tiny_do_not() {
+        // The mask (o), a 12-pixel base under it (b), a 12-pixel region apart (a), and a
+        // 3-pixel speck touching the mask (s); everything at one depth.
+        let rows = [
+            "............",
+            ".oooo...aaa.",
+            ".oooo...aaa.",
+            ".oooos..aaa.",
+            ".bbb.s..aaa.",
+            ".bbb.s......",
+            ".bbb........",
+            ".bbb........",
+        ];
+        let (w, h) = (rows[0].len(), rows.len());
+        let cell = |ch: char| rows.iter().flat_map(|r| r.chars()).map(|c| c == ch).collect::<Vec<bool>>();
+        let (mask, base) = (cell('o'), cell('b'));
+        let others: Vec<bool> = rows.iter().flat_map(|r| r.chars()).map(|c| "bas".contains(c)).collect();
+        let depth = vec![2.0; w * h];
+        let continuity = DepthContinuity { depth: &depth, max_jump: 0.05 };
+        let points: Vec<Option<Vec3>> = (0..w * h).map(|i| Some([(i % w) as f32, 0.0, 0.0])).collect();
+        let with_base: Vec<bool> = mask.iter().zip(&base).map(|(&m, &b)| m || b).collect();
+        assert_eq!(keep_attached_parts(&others, mask.clone(), w, h, &nearby(&points, 20.0), continuity), with_base);
+        // Beyond the radius (the base's nearest point is 1 unit from the focus) it stays out.
+        assert_eq!(keep_attached_parts(&others, mask.clone(), w, h, &nearby(&points, 0.5), continuity), mask);
+        // A depth step across the base splits it: the 6 pixels touching the mask are a speck.
+        let mut stepped = depth.clone();
+        for i in (6 * w..8 * w).filter(|&i| base[i]) {
+            stepped[i] = 4.0;
+        }
+        let continuity = DepthContinuity { depth: &stepped, max_jump: 0.05 };
+        assert_eq!(keep_attached_parts(&others, mask.clone(), w, h, &nearby(&points, 20.0), continuity), mask);
     }
 
     #[test]

@@ -22,7 +22,9 @@
 //!
 //! `masks.keep = "connected"` (the default) then drops the regions of the foreground cluster
 //! that hold none of the `focus` rule's voting pixels ([`crate::segment::cleanup`]); on orbit
-//! rigs the regions that stand near the focus stay (`masks.nearby_parts`). A mask
+//! rigs the regions that stand near the focus stay (`masks.nearby_parts`), and regions of the
+//! other clusters that rise clearly off the support planes and touch the mask join it
+//! (`masks.attached_parts`: a dark base clustered with its ground). A mask
 //! that still covers most of the image border has its cluster split again
 //! ([`crate::segment::border_split`]).
 
@@ -37,13 +39,21 @@ use crate::render::rays::RayBatch;
 use crate::render::renderer::{render_inference, ExtraChannels};
 use crate::scene::Scene;
 use crate::segment::border_split::{border_share, split_cluster};
-use crate::segment::cleanup::{keep_nearby_parts, keep_seeded_regions, DepthContinuity, NearbyParts};
+use crate::segment::cleanup::{
+    keep_attached_parts, keep_nearby_parts, keep_seeded_regions, DepthContinuity, NearbyParts,
+};
 use crate::segment::diagnostics::{evidence_image, MaskEvidence};
 use crate::segment::head::SegHead;
 use crate::segment::head_pass;
 use crate::segment::support_plane::{PlaneCandidates, ViewPoints};
 use crate::segment::surface::SurfacePoints;
 use crate::train::session::Session;
+
+/// Clearance from the support planes, in plane tolerances, beyond which a pixel of another
+/// cluster may join the mask as a part holding the object up: twice the band the plane rule
+/// counts as on the plane, so ground that the rule just missed does not (on the unbounded rig
+/// one band let a shadow in, whose dark pixels render with noisier depth).
+pub const ATTACHED_PART_CLEARANCE: f32 = 2.0;
 
 /// Largest angle (degrees) between a training camera's axis and the mean axis for which the
 /// rig counts as forward-facing in the `focus` rule.
@@ -486,6 +496,8 @@ impl<'a> MaskInference<'a> {
             None => foreground_by_votes(labels, k, &voters),
         };
         let support = planes.as_ref().map(|planes| planes.supports(&voters));
+        // Infinite where no support plane was found: then no pixel is clearly off one.
+        let clearance = planes.as_ref().map(|planes| planes.clearance(&view, &voters));
         let continuity =
             (masks.max_depth_jump > 0.0).then_some(DepthContinuity { depth: &r.depth, max_jump: masks.max_depth_jump });
         let nearby = match self.focus {
@@ -508,8 +520,17 @@ impl<'a> MaskInference<'a> {
                 KeepRegions::All => mask,
                 KeepRegions::Connected => {
                     let kept = keep_seeded_regions(&mask, w, h, &voters, continuity);
-                    match (&nearby, continuity) {
-                        (Some(parts), Some(depth)) => keep_nearby_parts(&mask, kept, w, h, parts, depth),
+                    let (Some(parts), Some(depth)) = (&nearby, continuity) else { return kept };
+                    let kept = keep_nearby_parts(&mask, kept, w, h, parts, depth);
+                    match &clearance {
+                        Some(clearance) if masks.attached_parts => {
+                            let others: Vec<bool> = labels
+                                .iter()
+                                .zip(clearance)
+                                .map(|(&l, &c)| l as usize != fg && c.is_finite() && c > ATTACHED_PART_CLEARANCE)
+                                .collect();
+                            keep_attached_parts(&others, kept, w, h, parts, depth)
+                        }
                         _ => kept,
                     }
                 }

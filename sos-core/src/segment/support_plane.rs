@@ -107,6 +107,8 @@ impl ViewPoints<'_> {
 pub struct PlaneCandidates {
     /// Per plane, the view's pixels that lie on it (row-major).
     on: Vec<Vec<bool>>,
+    /// The planes themselves, in the same order.
+    planes: Vec<Plane>,
     pixels: usize,
 }
 
@@ -114,7 +116,7 @@ impl PlaneCandidates {
     /// Finds the view's large planes (see the module documentation) with a fixed `seed`.
     pub fn find(view: &ViewPoints, seed: u64) -> PlaneCandidates {
         let n = view.points.len();
-        let mut planes = PlaneCandidates { on: Vec::new(), pixels: n };
+        let mut planes = PlaneCandidates { on: Vec::new(), planes: Vec::new(), pixels: n };
         if view.width == 0 || view.height == 0 {
             return planes;
         }
@@ -131,6 +133,7 @@ impl PlaneCandidates {
             left.retain(|&i| !on[i]);
             if view.reaches_two_borders(&on) {
                 planes.on.push(on);
+                planes.planes.push(plane);
             }
             if left.len() < 3 {
                 break;
@@ -142,6 +145,29 @@ impl PlaneCandidates {
     /// Pixels on any of the planes.
     pub fn any(&self) -> Vec<bool> {
         self.supports(&[])
+    }
+
+    /// Each pixel's clearance from the support planes (those [`Self::supports`] keeps for
+    /// `voters`): its point's distance from the nearest of them over its distance from the
+    /// camera, in units of [`PLANE_TOLERANCE`] (at most 1 on a plane); infinite for pixels
+    /// without a point or with no support plane.
+    pub fn clearance(&self, view: &ViewPoints, voters: &[usize]) -> Vec<f32> {
+        let supports: Vec<&Plane> = self
+            .on
+            .iter()
+            .zip(&self.planes)
+            .filter(|(on, _)| voters.iter().filter(|&&i| on[i]).count() * 2 < voters.len().max(1))
+            .map(|(_, plane)| plane)
+            .collect();
+        view.points
+            .iter()
+            .map(|p| {
+                let Some(p) = p else { return f32::INFINITY };
+                let d = sub(*p, view.origin);
+                let range = dot(d, d).sqrt() * PLANE_TOLERANCE;
+                supports.iter().map(|plane| plane.distance(*p) / range).fold(f32::INFINITY, f32::min)
+            })
+            .collect()
     }
 
     /// Pixels on the support planes: the candidates that hold fewer than half of `voters`
@@ -307,6 +333,33 @@ mod tests {
         assert!((box_lost as f64) < 0.05 * box_pixels as f64, "{box_lost} of {box_pixels} box pixels dropped");
         // Same seed, same answer.
         assert_eq!(support, PlaneCandidates::find(&view, 7).supports(&voters));
+    }
+
+    #[test]
+    fn clearance_is_the_distance_from_the_support_plane_in_plane_tolerances() {
+        let (w, h) = (80, 60);
+        let (points, object) = scene(w, h);
+        let origin = [0.0, 1.0, 3.0];
+        let view = ViewPoints { points: &points, origin, width: w, height: h };
+        let voters: Vec<usize> = (0..points.len()).filter(|&i| object[i]).take(50).collect();
+        let planes = PlaneCandidates::find(&view, 7);
+        let clearance = planes.clearance(&view, &voters);
+        for i in 0..points.len() {
+            let Some(p) = points[i] else {
+                assert_eq!(clearance[i], f32::INFINITY, "an empty ray has no clearance");
+                continue;
+            };
+            if object[i] {
+                // The box's points stand p.y above the ground y = 0.
+                let range = PLANE_TOLERANCE * dot(sub(p, origin), sub(p, origin)).sqrt();
+                assert!((clearance[i] - p[1] / range).abs() < 0.05 * (p[1] / range) + 0.1, "pixel {i}");
+            } else {
+                assert!(clearance[i] <= 1.0, "ground pixel {i}: {}", clearance[i]);
+            }
+        }
+        // With the ground holding the voters it is no support, and nothing has a clearance.
+        let on_ground: Vec<usize> = (0..points.len()).filter(|&i| points[i].is_some() && !object[i]).take(50).collect();
+        assert!(planes.clearance(&view, &on_ground).iter().all(|c| c.is_infinite()));
     }
 
     #[test]
