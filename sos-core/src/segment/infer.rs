@@ -496,8 +496,6 @@ impl<'a> MaskInference<'a> {
             None => foreground_by_votes(labels, k, &voters),
         };
         let support = planes.as_ref().map(|planes| planes.supports(&voters));
-        // Infinite where no support plane was found: then no pixel is clearly off one.
-        let clearance = planes.as_ref().map(|planes| planes.clearance(&view, &voters));
         let continuity =
             (masks.max_depth_jump > 0.0).then_some(DepthContinuity { depth: &r.depth, max_jump: masks.max_depth_jump });
         let nearby = match self.focus {
@@ -509,6 +507,12 @@ impl<'a> MaskInference<'a> {
             }),
             _ => None,
         };
+        // Only where attached parts are looked for (orbit rigs with connected regions). Infinite
+        // where no support plane was found: then no pixel is clearly off one.
+        let clearance = planes
+            .as_ref()
+            .filter(|_| masks.attached_parts && masks.keep == KeepRegions::Connected && nearby.is_some())
+            .map(|planes| planes.clearance(&view, &voters));
         // The cluster's pixels off the support planes, then (with `keep = "connected"`) only
         // its regions that hold a voter.
         let cut = |labels: &[u32], fg: usize| -> Vec<bool> {
@@ -523,7 +527,7 @@ impl<'a> MaskInference<'a> {
                     let (Some(parts), Some(depth)) = (&nearby, continuity) else { return kept };
                     let kept = keep_nearby_parts(&mask, kept, w, h, parts, depth);
                     match &clearance {
-                        Some(clearance) if masks.attached_parts => {
+                        Some(clearance) => {
                             let others: Vec<bool> = labels
                                 .iter()
                                 .zip(clearance)

@@ -152,13 +152,7 @@ impl PlaneCandidates {
     /// camera, in units of [`PLANE_TOLERANCE`] (at most 1 on a plane); infinite for pixels
     /// without a point or with no support plane.
     pub fn clearance(&self, view: &ViewPoints, voters: &[usize]) -> Vec<f32> {
-        let supports: Vec<&Plane> = self
-            .on
-            .iter()
-            .zip(&self.planes)
-            .filter(|(on, _)| voters.iter().filter(|&&i| on[i]).count() * 2 < voters.len().max(1))
-            .map(|(_, plane)| plane)
-            .collect();
+        let supports: Vec<&Plane> = self.support_indices(voters).map(|k| &self.planes[k]).collect();
         view.points
             .iter()
             .map(|p| {
@@ -174,13 +168,15 @@ impl PlaneCandidates {
     /// (the pixels nearest the focus, the object's).
     pub fn supports(&self, voters: &[usize]) -> Vec<bool> {
         let mut support = vec![false; self.pixels];
-        for on in &self.on {
-            let object_on_it = voters.iter().filter(|&&i| on[i]).count() * 2 >= voters.len().max(1);
-            if !object_on_it {
-                support.iter_mut().zip(on).for_each(|(s, &o)| *s |= o);
-            }
+        for k in self.support_indices(voters) {
+            support.iter_mut().zip(&self.on[k]).for_each(|(s, &o)| *s |= o);
         }
         support
+    }
+
+    /// The planes that hold fewer than half of `voters`: the supports, by index.
+    fn support_indices<'s>(&'s self, voters: &'s [usize]) -> impl Iterator<Item = usize> + 's {
+        (0..self.on.len()).filter(move |&k| voters.iter().filter(|&&i| self.on[k][i]).count() * 2 < voters.len().max(1))
     }
 }
 
