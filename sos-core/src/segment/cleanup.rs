@@ -140,7 +140,9 @@ pub fn keep_nearby_parts(
 /// that lie clearly off the view's support planes, so a dark base that clustered with the
 /// ground it stands on is a region of its own there, while the ground and the shadows on it
 /// are not candidates at all. A base rises from the ground without stepping back from it, so
-/// unlike [`keep_nearby_parts`] no standing test applies.
+/// unlike [`keep_nearby_parts`] no standing test applies. A part is no larger than the mask it
+/// holds up: where the rendered ground is foggy, patches of it float clear of the fitted plane
+/// all around the object, and such a patch joined to the mask would outgrow it.
 pub fn keep_attached_parts(
     others: &[bool],
     kept: Vec<bool>,
@@ -149,8 +151,9 @@ pub fn keep_attached_parts(
     parts: &NearbyParts,
     depth: DepthContinuity,
 ) -> Vec<bool> {
+    let mask_pixels = kept.iter().filter(|&&k| k).count();
     add_regions(others, kept, width, height, parts, depth, |region, mask, _| {
-        region.iter().any(|&i| neighbours(i, width, height).any(|j| mask[j]))
+        region.len() <= mask_pixels && region.iter().any(|&i| neighbours(i, width, height).any(|j| mask[j]))
     })
 }
 
@@ -325,6 +328,10 @@ mod tests {
         let points: Vec<Option<Vec3>> = (0..w * h).map(|i| Some([(i % w) as f32, 0.0, 0.0])).collect();
         let with_base: Vec<bool> = mask.iter().zip(&base).map(|(&m, &b)| m || b).collect();
         assert_eq!(keep_attached_parts(&others, mask.clone(), w, h, &nearby(&points, 20.0), continuity), with_base);
+        // A region larger than the mask is ground floating off its plane, not a part.
+        let small_mask: Vec<bool> = (0..w * h).map(|i| mask[i] && i / w == 3).collect();
+        let kept = keep_attached_parts(&others, small_mask.clone(), w, h, &nearby(&points, 20.0), continuity);
+        assert_eq!(kept, small_mask, "a 12-pixel base under a 4-pixel mask");
         // Beyond the radius (the base's nearest point is 1 unit from the focus) it stays out.
         assert_eq!(keep_attached_parts(&others, mask.clone(), w, h, &nearby(&points, 0.5), continuity), mask);
         // A depth step across the base splits it: the 6 pixels touching the mask are a speck.

@@ -42,6 +42,7 @@ use crate::segment::border_split::{border_share, split_cluster};
 use crate::segment::cleanup::{
     keep_attached_parts, keep_nearby_parts, keep_seeded_regions, DepthContinuity, NearbyParts,
 };
+use crate::segment::cluster_space::{cluster_view, unit_rows};
 use crate::segment::diagnostics::{evidence_image, MaskEvidence};
 use crate::segment::head::SegHead;
 use crate::segment::head_pass;
@@ -157,16 +158,7 @@ pub fn cluster_logits(
     let config = KMeansConfig { k: masks.clusters, n_init: masks.restarts, seed, ..KMeansConfig::default() };
     let mut values = if masks.softmax { softmax_rows(logits, d) } else { logits.to_vec() };
     if masks.normalize {
-        for row in values.chunks_exact_mut(d) {
-            if !row.iter().map(|v| v * v).sum::<f32>().is_finite() {
-                // The squares overflow (logits beyond ~1e19): scale the row down first, or
-                // it would divide by an infinite norm to zero.
-                let largest = row.iter().fold(0.0f32, |m, v| m.max(v.abs()));
-                row.iter_mut().for_each(|v| *v /= largest);
-            }
-            let norm = row.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-10);
-            row.iter_mut().for_each(|v| *v /= norm);
-        }
+        unit_rows(&mut values, d);
     }
     kmeans(&values, d, &config)
 }
@@ -462,7 +454,7 @@ impl<'a> MaskInference<'a> {
     pub fn segment(&self, camera: &Camera, name: &str) -> Result<ViewMask, RunError> {
         let r = render_logits(self.session, self.head, camera);
         let masks = &self.session.config.masks;
-        let km = cluster_logits(&r.logits, r.channels, masks, self.session.config.seed).map_err(|e| {
+        let clusters = cluster_view(&r.logits, r.channels, masks, self.session.config.seed).map_err(|e| {
             RunError::Diverged(format!(
                 "view {name}: cannot cluster the rendered logits ({e}); retrain stage 2 with `sos segment`"
             ))
@@ -540,7 +532,9 @@ impl<'a> MaskInference<'a> {
                 }
             }
         };
-        let (mut labels, mut k) = (km.labels, km.k);
+        // Border splits cluster in the space the view's clusters were found in.
+        let split_masks = MaskConfig { normalize: clusters.by_direction, ..masks.clone() };
+        let (mut labels, mut k) = (clusters.result.labels, clusters.result.k);
         let mut fg = choose(&labels, k);
         let mut foreground = cut(&labels, fg);
         let mut share = border_share(&foreground, w, h);
@@ -549,7 +543,7 @@ impl<'a> MaskInference<'a> {
                 break;
             }
             let seed = seed.wrapping_add(k as u64);
-            let Some(split) = split_cluster(&labels, k, fg, &r.logits, r.channels, masks, seed) else { break };
+            let Some(split) = split_cluster(&labels, k, fg, &r.logits, r.channels, &split_masks, seed) else { break };
             let split_fg = choose(&split, k + 1);
             let split_foreground = cut(&split, split_fg);
             let split_share = border_share(&split_foreground, w, h);

@@ -3,6 +3,7 @@
 
 pub mod border_split;
 pub mod cleanup;
+pub mod cluster_space;
 pub mod defaults;
 pub mod diagnostics;
 pub mod evaluate;
