@@ -17,8 +17,8 @@ use crate::segment::infer::cluster_logits;
 /// Below this ratio of explained direction variance (raw partition over direction partition),
 /// the raw clusters cut across the directions and the directions are clustered instead: the
 /// raw partition then explains less than half of what the trained signal separates. On the
-/// benchmark heads the ratio is above 0.85 for most views and below 0.3 where raw clustering
-/// splits a room by its distance from the middle (`RESULTS.md`, "Clustering by direction").
+/// benchmark heads the ratio is above 0.75 in almost every view and 0.12–0.43 where raw
+/// clustering splits a view by length (`RESULTS.md`, "Clustering by direction").
 pub const DIRECTION_CUT_RATIO: f64 = 0.5;
 
 /// Pixels the test clusters by direction (an even subsample of the view's).
