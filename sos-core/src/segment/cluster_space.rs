@@ -11,8 +11,8 @@
 //! variance against the share that clustering the directions themselves explains.
 
 use crate::config::MaskConfig;
-use crate::kmeans::{kmeans, KMeansConfig, KMeansError, KMeansResult};
-use crate::segment::infer::cluster_logits;
+use crate::kmeans::{kmeans, KMeansError, KMeansResult};
+use crate::segment::infer::{cluster_logits, kmeans_config};
 
 /// Below this ratio of explained direction variance (raw partition over direction partition),
 /// the raw clusters cut across the directions and the directions are clustered instead: the
@@ -99,15 +99,11 @@ pub fn cluster_view(logits: &[f32], d: usize, masks: &MaskConfig, seed: u64) -> 
     let mut units: Vec<f32> = logits.chunks_exact(d).step_by(step).flatten().copied().collect();
     unit_rows(&mut units, d);
     let raw_labels: Vec<u32> = raw.labels.iter().step_by(step).copied().collect();
-    let directional = MaskConfig { normalize: true, ..masks.clone() };
-    let sampled = kmeans(
-        &units,
-        d,
-        &KMeansConfig { k: masks.clusters, n_init: masks.restarts, seed, ..KMeansConfig::default() },
-    )?;
+    let sampled = kmeans(&units, d, &kmeans_config(masks, seed))?;
     let raw_share = explained_share(&units, d, &raw_labels, raw.k);
     let direction_share = explained_share(&units, d, &sampled.labels, sampled.k);
     Ok(if raw_share < DIRECTION_CUT_RATIO * direction_share {
+        let directional = MaskConfig { normalize: true, ..masks.clone() };
         ViewClusters { result: cluster_logits(logits, d, &directional, seed)?, by_direction: true }
     } else {
         ViewClusters { result: raw, by_direction: false }

@@ -146,6 +146,11 @@ pub fn softmax_rows(values: &[f32], d: usize) -> Vec<f32> {
     out
 }
 
+/// The k-means settings of `masks` (clusters and restarts) with `seed`.
+pub fn kmeans_config(masks: &MaskConfig, seed: u64) -> KMeansConfig {
+    KMeansConfig { k: masks.clusters, n_init: masks.restarts, seed, ..KMeansConfig::default() }
+}
+
 /// k-means of per-pixel logits (`[n, d]`), after a softmax when `masks.softmax` and scaling to
 /// unit length when `masks.normalize`; the result may have fewer clusters than asked when the
 /// logits take fewer distinct values.
@@ -155,7 +160,7 @@ pub fn cluster_logits(
     masks: &MaskConfig,
     seed: u64,
 ) -> Result<KMeansResult, crate::kmeans::KMeansError> {
-    let config = KMeansConfig { k: masks.clusters, n_init: masks.restarts, seed, ..KMeansConfig::default() };
+    let config = kmeans_config(masks, seed);
     let mut values = if masks.softmax { softmax_rows(logits, d) } else { logits.to_vec() };
     if masks.normalize {
         unit_rows(&mut values, d);
