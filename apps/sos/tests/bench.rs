@@ -104,6 +104,11 @@ fn a_matrix_runs_reports_caches_and_merges_from_shards() {
     assert!(times.windows(2).all(|w| w[0] <= w[1]), "{times:?}");
     // The stage-2 curve's last point is the final result.
     assert_eq!(curve2[2]["miou"], done["outcome"]["metrics"]["miou"]);
+    // One view with its mask is timed at the scene's own size, off the run's time.
+    let view = &done["outcome"]["view"];
+    assert_eq!((view["width"].as_u64(), view["height"].as_u64()), (Some(32), Some(24)), "{done:#}");
+    assert!(view["seconds"].as_f64().unwrap() > 0.0);
+    assert_eq!(done["outcome"]["stage2_steps"], 4);
 
     let skipped = json(&results.join("runs/missing__default__s0.json"));
     assert_eq!(skipped["status"], "skipped");
@@ -126,6 +131,11 @@ fn a_matrix_runs_reports_caches_and_merges_from_shards() {
     assert_eq!(default_row["variant"], "default");
     let to_target = default_row["to_target"]["mean"].as_f64().unwrap_or_else(|| panic!("{default_row:#}"));
     let total = default_row["seconds"]["total"]["mean"].as_f64().unwrap();
+    let step = default_row["stage2_step"]["mean"].as_f64().unwrap();
+    let stage2 = default_row["seconds"]["stage2"]["mean"].as_f64().unwrap();
+    assert!((step - stage2 / 4.0).abs() < 1e-9, "{step} vs {stage2}");
+    assert_eq!(default_row["view"][1], serde_json::json!([32, 24]));
+    assert!(md.contains("(32×24)"), "{md}");
     assert!(to_target > 0.0 && to_target <= total + 1e-9, "{to_target} vs {total}");
     assert_eq!(default_row["target_missed"], 0);
     let own = |seed: u64| {
@@ -237,6 +247,24 @@ fn runs_that_differ_only_after_stage_one_share_it_with_the_same_result() {
     assert!(!alone["outcome"]["notes"].to_string().contains("shared"), "{alone:#}");
     let diff = sos(&["bench", "diff", "alone", "together"], &dir);
     assert!(diff.status.success(), "{}{}", text(&diff.stdout), text(&diff.stderr));
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
+fn a_profile_times_its_view_at_the_size_it_names() {
+    let dir = temp_dir("view-size");
+    let profile = "[profiles.big]\nscenes = [\"tiny\"]\nmethods = [\"default\"]\nseeds = [0]\nview_size = [48, 36]\n";
+    write_bench(&dir, profile);
+    let out = sos(&["bench", "bench.toml", "--profile", "big"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let run = json(&dir.join("results/big/runs/tiny__default__s0.json"));
+    let view = &run["outcome"]["view"];
+    assert_eq!((view["width"].as_u64(), view["height"].as_u64()), (Some(48), Some(36)), "{run:#}");
+    // A size of zero is refused before any run, naming the profile.
+    write_bench(&dir, "[profiles.bad]\nview_size = [0, 36]\n");
+    let out = sos(&["bench", "bench.toml", "--profile", "bad"], &dir);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(text(&out.stderr).contains("profile `bad`, `view_size` is 0x36"), "{}", text(&out.stderr));
     std::fs::remove_dir_all(dir).ok();
 }
 

@@ -21,7 +21,7 @@ use sos_core::train::Session;
 
 use super::record::{
     cpu_seconds, cpu_ticks, peak_rss_mib, stolen_between, Curves, Metrics, Outcome, RunRecord, Stage1Point,
-    Stage1Summary, Stage2Point, Timing,
+    Stage1Summary, Stage2Point, Timing, ViewTime,
 };
 
 /// Arguments of `sos bench-exec`.
@@ -45,6 +45,9 @@ pub struct ExecArgs {
     /// The record (`runs/<id>.json`) of the run `--stage1-checkpoint` comes from.
     #[arg(long, requires = "stage1_checkpoint")]
     pub stage1_record: Option<PathBuf>,
+    /// Size of the view whose time with its mask is measured (default: the scene's own).
+    #[arg(long, num_args = 2, value_names = ["WIDTH", "HEIGHT"])]
+    pub view_size: Option<Vec<u32>>,
 }
 
 /// Stage 1 as a run ran it or took it from an earlier run.
@@ -107,6 +110,10 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
         }
     };
     let mut notes = stage1.summary.notes.clone();
+    let mut view = None;
+    // The view's timing is a measurement, like the curves: kept off the run's time.
+    let mut view_measurement = 0.0;
+    let mut stage2_steps = None;
     let metrics = match segmenter {
         None => {
             let t = Instant::now();
@@ -137,6 +144,10 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
             let inference = MaskInference::new(&session, &seg.head, Some(seg.teacher.extractor()))?;
             let eval = evaluate_masks(&session, &inference, true)?;
             timing.masks = t.elapsed().as_secs_f64();
+            stage2_steps = Some(seg.step);
+            let t = Instant::now();
+            view = time_view(&session, &inference, args.view_size.as_deref())?;
+            view_measurement = t.elapsed().as_secs_f64();
             mask_metrics(&eval, &mut notes)
         }
     };
@@ -149,7 +160,8 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
         notes.push("the scene holds out no views: no held-out metrics".into());
     }
     timing.curve_eval = curves.stage1_eval + curves.stage2_eval;
-    timing.total = started.elapsed().as_secs_f64() - timing.curve_eval;
+    let measured = timing.curve_eval + view_measurement;
+    timing.total = started.elapsed().as_secs_f64() - measured;
     if stage1.shared {
         // The shared stage 1 ran in another process: its time counts as if it ran here.
         timing.total += timing.stage1;
@@ -169,8 +181,30 @@ pub fn run(args: &ExecArgs) -> anyhow::Result<()> {
         notes,
         derived: session.derived.clone(),
         stage1: (!stage1.shared).then_some(stage1.summary),
+        stage2_steps,
+        view,
     };
     crate::commands::write_json(&args.outcome, &outcome)
+}
+
+/// The time of one view with its mask at `size` (the camera's own without one): the first
+/// held-out camera, else the first training one; `None` for a scene without views.
+fn time_view(session: &Session, inference: &MaskInference, size: Option<&[u32]>) -> anyhow::Result<Option<ViewTime>> {
+    let scene = &session.scene;
+    let Some(&index) = scene.test.first().or(scene.train.first()) else { return Ok(None) };
+    let view = &scene.views[index];
+    let camera = match size {
+        Some(&[width, height]) => view.camera.resized(width, height),
+        _ => view.camera.clone(),
+    };
+    let mut seconds = Vec::with_capacity(ViewTime::REPEATS);
+    for _ in 0..ViewTime::REPEATS {
+        let t = Instant::now();
+        inference.segment(&camera, &view.name)?;
+        seconds.push(t.elapsed().as_secs_f64());
+    }
+    seconds.sort_by(f64::total_cmp);
+    Ok(Some(ViewTime { width: camera.width, height: camera.height, seconds: seconds[seconds.len() / 2] }))
 }
 
 /// `Some(v)` for a finite value; otherwise a note and `None`, so that no report shows NaN.

@@ -86,6 +86,8 @@ pub struct PlannedRun {
     pub shard_key: String,
     /// Why the run cannot happen here (missing data or weights, a kind not built in).
     pub skip: Option<String>,
+    /// Size of the view the run times with its mask (none: the scene's own).
+    pub view_size: Option<[u32; 2]>,
 }
 
 /// The planned runs of a profile, sorted by id.
@@ -126,6 +128,7 @@ pub fn plan(file: &BenchFile, profile: Option<&str>, out: &Path) -> anyhow::Resu
         bail!("{fpath}: no seeds to run");
     }
     let curve_points = prof.and_then(|p| p.curve_points).unwrap_or(file.bench.curve_points);
+    let view_size = prof.and_then(|p| p.view_size).or(file.bench.view_size);
     let empty = Table::new();
     let profile_set = prof.map_or(&empty, |p| &p.set);
 
@@ -162,6 +165,7 @@ pub fn plan(file: &BenchFile, profile: Option<&str>, out: &Path) -> anyhow::Resu
             generate: generate.as_ref(),
             skip: scene_skip,
             curve_points,
+            view_size,
         };
         for method in &methods {
             let points = vec![Point { label: String::new(), set: file.methods[method].set.clone(), x: None }];
@@ -206,6 +210,7 @@ struct RunContext<'a> {
     generate: Option<&'a Generate>,
     skip: Option<String>,
     curve_points: usize,
+    view_size: Option<[u32; 2]>,
 }
 
 impl RunContext<'_> {
@@ -258,7 +263,11 @@ impl RunContext<'_> {
                 ),
                 None => (method.to_string(), None, method.to_string()),
             };
-            let hash = run_hash(&config, self.generate, self.curve_points);
+            // The timed view's size changes what the run measures, not its stage 1.
+            let mut hash = run_hash(&config, self.generate, self.curve_points);
+            if let Some([w, h]) = self.view_size {
+                hash = hash_text(&format!("{hash}\n# view_size = {w}x{h}\n"));
+            }
             let stage1_hash = stage1_hash(&config, self.generate, self.curve_points);
             out.push(PlannedRun {
                 key: RunKey {
@@ -276,6 +285,7 @@ impl RunContext<'_> {
                 stage1_hash,
                 shard_key,
                 skip,
+                view_size: self.view_size,
             });
         }
         Ok(out)
@@ -372,12 +382,21 @@ fn leaf(path: &str) -> &str {
     path.rsplit('.').next().unwrap_or(path)
 }
 
-/// A short label for a value: scalars as written, anything else by its size.
+/// Most items of a list written out in a label (a grid's three axes, a few steps).
+const LISTED_ITEMS: usize = 4;
+
+/// A short label for a value: scalars as written, a short list of scalars item by item
+/// (`[96,96,96]`), anything else by its size.
 fn short(v: &Value) -> String {
     match v {
         Value::String(s) => s.clone(),
         Value::Integer(_) | Value::Float(_) | Value::Boolean(_) => v.to_string(),
-        Value::Array(a) => format!("[{} items]", a.len()),
+        Value::Array(a)
+            if a.len() <= LISTED_ITEMS && a.iter().all(|x| !matches!(x, Value::Array(_) | Value::Table(_))) =>
+        {
+            format!("[{}]", a.iter().map(short).collect::<Vec<_>>().join(","))
+        }
+        Value::Array(a) => format!("[{} item{}]", a.len(), if a.len() == 1 { "" } else { "s" }),
         _ => "{table}".into(),
     }
 }
@@ -548,6 +567,15 @@ mod tests {
         let labels: Vec<_> = m.runs.iter().filter_map(|r| r.key.sweep.as_ref().map(|s| s.label.clone())).collect();
         assert_eq!(labels.len(), 2);
         assert!(labels.contains(&"lr=0.1, steps=5".to_string()), "{labels:?}");
+    }
+
+    #[test]
+    fn short_lists_are_labelled_item_by_item() {
+        let grid = Value::Array(vec![Value::Integer(96); 3]);
+        assert_eq!(short(&grid), "[96,96,96]");
+        assert_eq!(slug(&short(&grid)), "_96_96_96_");
+        assert_eq!(short(&Value::Array(vec![Value::Float(0.5); 9])), "[9 items]");
+        assert_eq!(short(&Value::Array(vec![grid.clone()])), "[1 item]");
     }
 
     #[test]

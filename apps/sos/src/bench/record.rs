@@ -139,6 +139,30 @@ pub struct Outcome {
     /// What its stage 1 left for runs that share it (absent in a run that shared another's).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stage1: Option<Stage1Summary>,
+    /// Steps stage 2 ran (absent without stage 2): with `timing.stage2`, the time of a step.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stage2_steps: Option<usize>,
+    /// The time of one view with its mask, as a user waits for it (absent without stage 2).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub view: Option<ViewTime>,
+}
+
+/// How long one view with its mask takes: the first held-out camera (the first training one
+/// when none is held out) at `width x height`, rendered, clustered and cleaned up as `sos
+/// render` does, the median of [`ViewTime::REPEATS`] repeats. Not part of any stage's time.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ViewTime {
+    /// View width, pixels.
+    pub width: u32,
+    /// View height, pixels.
+    pub height: u32,
+    /// Median wall seconds.
+    pub seconds: f64,
+}
+
+impl ViewTime {
+    /// Repeats of the view; the median is kept, so one disturbed repeat does not count.
+    pub const REPEATS: usize = 3;
 }
 
 /// What a run's stage 1 gives a run that shares it besides the field: the stage's notes and

@@ -54,6 +54,12 @@ pub struct Row {
     pub metrics: BTreeMap<String, Stat>,
     /// Phase seconds by name (`stage1`, `stage2`, `masks`, `total`).
     pub seconds: BTreeMap<String, Stat>,
+    /// Seconds per stage-2 step (stage-2 time over its steps).
+    #[serde(default)]
+    pub stage2_step: Option<Stat>,
+    /// Seconds of one view with its mask, and the view's size.
+    #[serde(default)]
+    pub view: Option<(Stat, [u32; 2])>,
     /// Largest peak resident memory over seeds, MiB.
     pub peak_rss_mib: Option<f64>,
     /// CPU time over wall time of the run processes: the cores kept busy.
@@ -204,6 +210,11 @@ fn row(variant: &str, runs: &[&&RunRecord], target: Option<&Target>) -> Row {
         seeds: done.iter().map(|r| r.key.seed).collect(),
         metrics,
         seconds,
+        stage2_step: Stat::of(
+            outcomes.iter().filter_map(|o| o.stage2_steps.filter(|&n| n > 0).map(|n| o.timing.stage2 / n as f64)),
+        ),
+        view: Stat::of(outcomes.iter().filter_map(|o| o.view.as_ref().map(|v| v.seconds)))
+            .zip(outcomes.iter().find_map(|o| o.view.as_ref().map(|v| [v.width, v.height]))),
         peak_rss_mib: outcomes
             .iter()
             .filter_map(|o| o.peak_rss_mib)
@@ -218,6 +229,11 @@ fn row(variant: &str, runs: &[&&RunRecord], target: Option<&Target>) -> Row {
         target_missed: times.iter().filter(|t| t.is_none()).count(),
         problems,
     }
+}
+
+/// A view's time with its size: `0.93 (504×378)`.
+fn view_text(view: Option<&(Stat, [u32; 2])>) -> String {
+    view.map_or("-".into(), |(s, [w, h])| format!("{} ({w}×{h})", fmt_stat(Some(s), 2)))
 }
 
 /// A share as a whole percentage (the mean over seeds).
@@ -247,7 +263,8 @@ impl Report {
         md.push_str(&format!(
             "Runs: {}. Metrics are means over held-out views, then mean ± std over seeds; times in seconds \
              (`total` is the run's time to its result, learning-curve evaluations excluded); speed-up is \
-             against the `{}` row of the same scene; cores busy is the run's CPU time over its wall time \
+             against the `{}` row of the same scene; view s is one view with its mask at the size shown (the \
+             median of three, kept off the run's time); cores busy is the run's CPU time over its wall time \
              (well below the core count: serial phases, or a machine shared with other work); CPU stolen is \
              the share of the machine's CPU time its hypervisor gave to other guests during the run (above \
              a few percent, the times are not those of an idle machine).\n",
@@ -274,14 +291,14 @@ impl Report {
 
     /// The compact table of every scene's rows (for the README).
     pub fn summary_markdown(&self) -> String {
-        let mut md = String::from("| scene | method | mIoU | NV-ARI | PSNR dB | stage 1 s | stage 2 s | total s | peak MiB | cores busy | CPU stolen |\n|---|---|---|---|---|---|---|---|---|---|---|\n");
+        let mut md = String::from("| scene | method | mIoU | NV-ARI | PSNR dB | stage 1 s | stage 2 s | total s | view s | peak MiB | cores busy | CPU stolen |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n");
         for scene in &self.scenes {
             for r in &scene.rows {
                 let m = |k: &str, d| fmt_stat(r.metrics.get(k), d);
                 let s = |k: &str| fmt_stat(r.seconds.get(k), 1);
                 let status = if r.seeds.is_empty() { format!(" ({})", r.problems.join("; ")) } else { String::new() };
                 md.push_str(&format!(
-                    "| {} | {}{status} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+                    "| {} | {}{status} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
                     scene.scene,
                     r.variant,
                     m("mIoU", 3),
@@ -290,6 +307,7 @@ impl Report {
                     s("stage1"),
                     s("stage2"),
                     s("total"),
+                    view_text(r.view.as_ref()),
                     r.peak_rss_mib.map_or("-".into(), |p| format!("{p:.0}")),
                     fmt_stat(r.cores_busy.as_ref(), 2),
                     percent(r.cpu_stolen.as_ref())
@@ -316,8 +334,8 @@ fn table(rows: &[Row], with_problems: bool, with_target: bool) -> String {
     let target_head = if with_target { " to target s |" } else { "" };
     let target_rule = if with_target { "---|" } else { "" };
     let mut md = format!(
-        "| method | seeds | mIoU | NV-ARI | IoU FG | IoU BG | PSNR dB | SSIM | stage 1 s | stage 2 s | masks s | total s |{target_head} speed-up | peak MiB | cores busy | CPU stolen |\n\
-         |---|---|---|---|---|---|---|---|---|---|---|---|{target_rule}---|---|---|---|\n",
+        "| method | seeds | mIoU | NV-ARI | IoU FG | IoU BG | PSNR dB | SSIM | stage 1 s | stage 2 s | stage-2 step s | masks s | total s |{target_head} speed-up | view s | peak MiB | cores busy | CPU stolen |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|---|---|{target_rule}---|---|---|---|---|\n",
     );
     let mut notes = Vec::new();
     for r in rows {
@@ -325,7 +343,7 @@ fn table(rows: &[Row], with_problems: bool, with_target: bool) -> String {
         let s = |k: &str| fmt_stat(r.seconds.get(k), 1);
         let target_cell = if with_target { format!(" {} |", to_target_text(r)) } else { String::new() };
         md.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |{target_cell} {} | {} | {} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |{target_cell} {} | {} | {} | {} | {} |\n",
             r.variant,
             r.seeds.len(),
             m("mIoU", 3),
@@ -336,9 +354,11 @@ fn table(rows: &[Row], with_problems: bool, with_target: bool) -> String {
             m("SSIM", 3),
             s("stage1"),
             s("stage2"),
+            fmt_stat(r.stage2_step.as_ref(), 3),
             s("masks"),
             s("total"),
             r.speedup.map_or("-".into(), |x| format!("{x:.2}×")),
+            view_text(r.view.as_ref()),
             r.peak_rss_mib.map_or("-".into(), |p| format!("{p:.0}")),
             fmt_stat(r.cores_busy.as_ref(), 2),
             percent(r.cpu_stolen.as_ref())

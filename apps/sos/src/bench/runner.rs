@@ -266,6 +266,9 @@ fn execute(
         .arg(&outcome_path)
         .arg("--curve-points")
         .arg(curve_points.to_string());
+    if let Some([w, h]) = run.view_size {
+        command.arg("--view-size").arg(w.to_string()).arg(h.to_string());
+    }
     // The child gets the very record the runner checked.
     let source_record = work.join(format!("{}.stage1-source.json", run.key.id));
     if let Some(source) = stage1_from {

@@ -7,6 +7,7 @@
 //! seeds = [0]
 //! default_profile = "quick"
 //! target = { miou = 0.95, nv_ari = 0.93 }   # the report's time-to-target column
+//! view_size = [504, 378]    # the view each run times with its mask (default: the scene's size)
 //!
 //! [scenes.object-centric]
 //! config = "../configs/synthetic.toml"          # base run config, relative to this file
@@ -36,6 +37,9 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use serde::Deserialize;
+
+/// Largest side of the timed view: a 16k view with its mask is already minutes of work.
+const MAX_VIEW_SIDE: u32 = 16384;
 
 /// A parsed benchmark file.
 #[derive(Debug, Deserialize)]
@@ -77,6 +81,8 @@ pub struct BenchSettings {
     pub out: PathBuf,
     /// The quality whose wall time to reach the report gives per run (none: no such column).
     pub target: Option<super::target::Target>,
+    /// `[width, height]` of the view each run times with its mask (none: the scene's own size).
+    pub view_size: Option<[u32; 2]>,
 }
 
 impl Default for BenchSettings {
@@ -88,6 +94,7 @@ impl Default for BenchSettings {
             default_profile: None,
             out: PathBuf::from("../runs/bench"),
             target: None,
+            view_size: None,
         }
     }
 }
@@ -186,6 +193,8 @@ pub struct ProfileSpec {
     pub seeds: Option<Vec<u64>>,
     /// Learning-curve samples per stage (default: `[bench] curve_points`).
     pub curve_points: Option<usize>,
+    /// Size of the timed view (default: `[bench] view_size`).
+    pub view_size: Option<[u32; 2]>,
     /// Overrides applied to every run of the profile, after the scene's and before the
     /// method's.
     #[serde(default)]
@@ -221,6 +230,15 @@ impl BenchFile {
         }
         if let Some(Err(why)) = self.bench.target.as_ref().map(super::target::Target::check) {
             bail!("{file}: `bench.target` {why}");
+        }
+        let sizes = std::iter::once(("`bench.view_size`".to_string(), self.bench.view_size))
+            .chain(self.profiles.iter().map(|(name, p)| (format!("profile `{name}`, `view_size`"), p.view_size)));
+        for (what, size) in sizes {
+            if let Some([w, h]) = size {
+                if !(1..=MAX_VIEW_SIDE).contains(&w) || !(1..=MAX_VIEW_SIDE).contains(&h) {
+                    bail!("{file}: {what} is {w}x{h}; give a width and height from 1 to {MAX_VIEW_SIDE}");
+                }
+            }
         }
         if !self.methods.contains_key(&self.bench.baseline) {
             bail!(

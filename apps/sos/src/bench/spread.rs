@@ -150,6 +150,8 @@ mod tests {
             seeds: vec![0],
             metrics: BTreeMap::from([("mIoU".to_string(), stat(miou)), ("NV-ARI".to_string(), stat(ari))]),
             seconds: BTreeMap::new(),
+            stage2_step: None,
+            view: None,
             peak_rss_mib: None,
             cores_busy: None,
             cpu_stolen: None,
