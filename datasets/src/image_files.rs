@@ -67,12 +67,33 @@ pub fn stem(path: &Path) -> &str {
 /// Reads a mask (grey, or luminance of colour), binarised at [`MASK_THRESHOLD`]; it must be
 /// `width` x `height`.
 pub fn load_mask(path: &Path, width: usize, height: usize) -> Result<GrayImage, DatasetError> {
-    let mut mask = GrayImage::load(path)?;
+    binarised(GrayImage::load(path)?, path, width, height, "resize the mask to")
+}
+
+/// [`load_mask`] for a mask that may also be a whole multiple of `width` x `height` (masks
+/// made at a capture's full resolution for images loaded downscaled), reduced by nearest
+/// neighbour as `sos compare` reduces a reference mask.
+pub fn load_mask_reduced(path: &Path, width: usize, height: usize) -> Result<GrayImage, DatasetError> {
+    let mask = GrayImage::load(path)?;
+    let k = mask.width / width.max(1);
+    let multiple = k >= 1 && (mask.width, mask.height) == (k * width, k * height);
+    let mask = if multiple { mask.resized_nearest(width, height) } else { mask };
+    binarised(mask, path, width, height, "give the mask a whole multiple of that size or resize it to")
+}
+
+/// `mask` binarised, if it is `width` x `height`; else an error whose advice starts `fix`.
+fn binarised(
+    mut mask: GrayImage,
+    path: &Path,
+    width: usize,
+    height: usize,
+    fix: &str,
+) -> Result<GrayImage, DatasetError> {
     if (mask.width, mask.height) != (width, height) {
         return Err(DatasetError::Invalid {
             path: path.to_path_buf(),
             message: format!(
-                "mask is {}x{} but its image is {width}x{height}; resize the mask to \
+                "mask is {}x{} but its image is {width}x{height}; {fix} \
                  {width}x{height} (nearest-neighbour)",
                 mask.width, mask.height
             ),

@@ -6,7 +6,8 @@
 //! images in `images_{factor}/` (or `images/`, downscaled in-process with a box filter when
 //! that folder is missing), optional masks in `segments/` or `masks/` with the images' stems
 //! (foreground = value > 0.5, same size as the loaded images; masks may cover only some views,
-//! e.g. the test views, but a mask folder matching no image is an error).
+//! e.g. the test views, but a mask folder matching no image is an error), or in the folder the
+//! `masks` key names, which may also hold them at a whole multiple of the loaded size.
 //!
 //! Processing, as the reference: columns reordered to (right, up, back); H, W taken from the
 //! images and focal divided by the factor; translations and bounds scaled by
@@ -28,7 +29,7 @@ use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, SceneExtent, View};
 
 use crate::adapter::{hold_out_views, register_dataset, require_folder};
-use crate::image_files::{find_with_stem, list_images, load_mask, stem};
+use crate::image_files::{find_with_stem, list_images, load_mask, load_mask_reduced, stem};
 use crate::npy::read_npy;
 use crate::pose::{self, Pose};
 use crate::text::invalid;
@@ -61,6 +62,11 @@ pub struct LlffConfig {
     pub spherify: Option<bool>,
     /// Number of cameras on the spiral render path (default 120).
     pub render_path_views: usize,
+    /// Folder of masks named like the images, relative to the scene folder (`path`), instead
+    /// of its `segments/` or `masks/`; a mask may be a whole multiple of the loaded images'
+    /// size (full-resolution masks for `images_8/`) and is then reduced by nearest neighbour.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub masks: Option<PathBuf>,
 }
 
 impl Default for LlffConfig {
@@ -74,6 +80,7 @@ impl Default for LlffConfig {
             bd_factor: 0.75,
             spherify: None,
             render_path_views: 120,
+            masks: None,
         }
     }
 }
@@ -382,7 +389,10 @@ pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
     let focal = geo.hwf[2] / source.factor;
     let (near, far) = (0.9 * geo.bounds[0], geo.bounds[1]);
 
-    let masks = MaskDir::find(root);
+    let masks = match &cfg.masks {
+        Some(dir) => MaskDir::named(&root.join(dir))?,
+        None => MaskDir::find(root),
+    };
     let mut views = Vec::with_capacity(files.len());
     for (i, ((file, image), p)) in files.iter().zip(images).zip(poses).enumerate() {
         let camera = pose::to_camera(p, width as u32, height as u32, focal);
@@ -426,13 +436,29 @@ pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
     })
 }
 
-/// The optional mask folder of a capture: `segments/` or else `masks/` in the scene folder.
-pub(crate) struct MaskDir(Option<PathBuf>);
+/// The optional mask folder of a capture: `segments/` or else `masks/` in the scene folder,
+/// or a folder the config names.
+pub(crate) struct MaskDir {
+    dir: Option<PathBuf>,
+    /// Masks at a whole multiple of the images' size are reduced (a named folder only).
+    reduce: bool,
+}
 
 impl MaskDir {
     /// Looks for `segments/`, then `masks/`, in `root`.
     pub(crate) fn find(root: &Path) -> Self {
-        MaskDir(["segments", "masks"].iter().map(|d| root.join(d)).find(|d| d.is_dir()))
+        MaskDir { dir: ["segments", "masks"].iter().map(|d| root.join(d)).find(|d| d.is_dir()), reduce: false }
+    }
+
+    /// The folder the config's `masks` key names, which must exist.
+    pub(crate) fn named(dir: &Path) -> Result<Self, DatasetError> {
+        if !dir.is_dir() {
+            return Err(DatasetError::Missing {
+                path: dir.to_path_buf(),
+                hint: "expected a folder of masks named like the images; check `masks` (relative to `path`)".into(),
+            });
+        }
+        Ok(MaskDir { dir: Some(dir.to_path_buf()), reduce: true })
     }
 
     /// The mask of the image with stem `stem`, if the folder has one.
@@ -442,7 +468,8 @@ impl MaskDir {
         width: usize,
         height: usize,
     ) -> Result<Option<sos_core::image::GrayImage>, DatasetError> {
-        match self.0.as_ref().and_then(|d| find_with_stem(d, stem)) {
+        match self.dir.as_ref().and_then(|d| find_with_stem(d, stem)) {
+            Some(path) if self.reduce => Ok(Some(load_mask_reduced(&path, width, height)?)),
             Some(path) => Ok(Some(load_mask(&path, width, height)?)),
             None => Ok(None),
         }
@@ -451,7 +478,7 @@ impl MaskDir {
     /// Masks may cover only some views (e.g. the test views), but a mask folder none of whose
     /// files matches an image stem is a mistake worth reporting.
     pub(crate) fn check_any_used(&self, views: &[View]) -> Result<(), DatasetError> {
-        match &self.0 {
+        match &self.dir {
             Some(dir) if views.iter().all(|v| v.mask.is_none()) => Err(invalid(
                 dir,
                 "no mask file has the stem of an image; name masks like their images \
@@ -579,7 +606,21 @@ mod tests {
         // images_2 is missing: images/ is box-filtered to half size, but masks/ is full size.
         let err = load_llff(&LlffConfig { factor: Some(2), ..cfg(&dir) }, &dir).unwrap_err().to_string();
         assert!(err.contains("masks") && err.contains("resize") && err.contains("48x36"), "{err}");
-        std::fs::remove_dir_all(dir.join("masks")).unwrap();
+        // Named by `masks`, the same full-size masks are reduced by nearest neighbour.
+        std::fs::rename(dir.join("masks"), dir.join("full_masks")).unwrap();
+        let named = LlffConfig { factor: Some(2), masks: Some("full_masks".into()), ..cfg(&dir) };
+        let reduced = load_llff(&named, &dir).unwrap();
+        let truth = scene.views[5].mask.as_ref().unwrap().resized_nearest(48, 36);
+        assert_eq!(reduced.views[5].mask.as_ref().unwrap().data, truth.data);
+        // A named folder that is missing, or masks of no whole multiple of the size, are errors.
+        let missing = LlffConfig { masks: Some("nowhere".into()), ..named.clone() };
+        let err = load_llff(&missing, &dir).unwrap_err().to_string();
+        assert!(err.contains("nowhere") && err.contains("`masks`"), "{err}");
+        let odd = scene.views[0].mask.as_ref().unwrap().resized_nearest(70, 50);
+        odd.save_png(&dir.join("full_masks").join(format!("{}.png", reduced.views[0].name))).unwrap();
+        let err = load_llff(&named, &dir).unwrap_err().to_string();
+        assert!(err.contains("70x50") && err.contains("whole multiple"), "{err}");
+        std::fs::remove_dir_all(dir.join("full_masks")).unwrap();
         let half = load_llff(&LlffConfig { factor: Some(2), ..cfg(&dir) }, &dir).unwrap();
         half.validate().unwrap();
         let v = &half.views[5];
