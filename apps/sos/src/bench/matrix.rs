@@ -315,12 +315,16 @@ fn missing_files(config: &Value, config_dir: &Path, generated: bool) -> Option<S
     if !generated {
         keys.push("scene.path");
     }
-    keys.into_iter().find_map(|key| {
-        let (section, name) = key.split_once('.').expect("dotted");
-        let p = config.get(section)?.get(name)?.as_str()?;
-        let path = config_dir.join(p);
-        (!p.is_empty() && !path.exists()).then(|| format!("path missing: {} (`{key}`)", path.display()))
-    })
+    let text = |section: &str, name: &str| config.get(section)?.get(name)?.as_str().filter(|p| !p.is_empty());
+    let missing =
+        |key: &str, path: PathBuf| (!path.exists()).then(|| format!("path missing: {} (`{key}`)", path.display()));
+    keys.into_iter()
+        .find_map(|key| {
+            let (section, name) = key.split_once('.').expect("dotted");
+            missing(key, config_dir.join(text(section, name)?))
+        })
+        // A mask folder named beside the capture (LLFF's `masks`) is relative to its `path`.
+        .or_else(|| missing("scene.masks", config_dir.join(text("scene", "path")?).join(text("scene", "masks")?)))
 }
 
 /// The points of a sweep: its explicit points, or the product or zip of its `vary` lists.
@@ -602,6 +606,19 @@ mod tests {
         let alien = m.runs.iter().find(|r| r.key.method == "alien").unwrap();
         assert!(alien.skip.as_deref().unwrap().contains("not registered"), "{:?}", alien.skip);
         assert!(m.runs.iter().filter(|r| r.key.method == "default").all(|r| r.skip.is_none()));
+    }
+
+    #[test]
+    fn a_mask_folder_missing_beside_its_capture_is_a_skip() {
+        let dir = std::env::temp_dir().join(format!("sos-matrix-masks-{}", std::process::id()));
+        std::fs::create_dir_all(dir.join("capture").join("segments")).unwrap();
+        let config = |masks: &str| -> Value {
+            toml::from_str(&format!("[scene]\nkind = \"llff\"\npath = \"capture\"\nmasks = \"{masks}\"\n")).unwrap()
+        };
+        let why = missing_files(&config("../sam"), &dir, false).unwrap();
+        assert!(why.contains("sam") && why.contains("`scene.masks`"), "{why}");
+        assert_eq!(missing_files(&config("segments"), &dir, false), None);
+        std::fs::remove_dir_all(dir).ok();
     }
 
     #[test]
