@@ -1,6 +1,7 @@
-//! How one method does across the scenes of a benchmark: mean and worst mIoU and NV-ARI over
-//! scenes, the worst scene named, and that scene's held-out masks copied next to the report
-//! (`worst/<method>/`), so a default is judged on its worst world, not its average.
+//! How one method or sweep point does across the scenes of a benchmark: mean and worst mIoU
+//! and NV-ARI over scenes, the worst scene named, and, for a method, that scene's held-out
+//! masks copied next to the report (`worst/<method>/`), so a default is judged on its worst
+//! world, not its average, and a swept setting on every scene it ran on.
 
 use std::path::Path;
 
@@ -15,7 +16,7 @@ pub const WORST_DIR: &str = "worst";
 /// One method over every scene it finished on.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct AcrossScenes {
-    /// The method (sweep points are left out: they vary one scene's settings).
+    /// The report row: a method, or `<sweep>: <label>` for a sweep point.
     pub method: String,
     /// Scenes with a finished run.
     pub scenes: usize,
@@ -29,19 +30,25 @@ pub struct AcrossScenes {
     pub nv_ari_worst: (f64, String),
 }
 
-/// The spread of every method over at least two scenes with mIoU and NV-ARI.
+/// The spread of every method and sweep point over at least two scenes with mIoU and NV-ARI:
+/// methods first, then sweep points, each in the order the tables first list them.
 pub fn across_scenes(tables: &[SceneTable]) -> Vec<AcrossScenes> {
-    let mut methods: Vec<&str> =
-        tables.iter().flat_map(|t| t.rows.iter().filter(|r| r.sweep.is_none()).map(|r| r.variant.as_str())).collect();
-    methods.sort();
-    methods.dedup();
-    methods
+    let mut variants: Vec<(bool, &str)> = Vec::new();
+    for row in tables.iter().flat_map(|t| &t.rows) {
+        let key = (row.sweep.is_some(), row.variant.as_str());
+        if !variants.contains(&key) {
+            variants.push(key);
+        }
+    }
+    // A stable sort keeps each group in its first-listed order.
+    variants.sort_by_key(|&(swept, _)| swept);
+    variants
         .into_iter()
-        .filter_map(|method| {
+        .filter_map(|(_, method)| {
             let per_scene: Vec<(&str, f64, f64)> = tables
                 .iter()
                 .filter_map(|t| {
-                    let row = t.rows.iter().find(|r| r.sweep.is_none() && r.variant == method)?;
+                    let row = t.rows.iter().find(|r| r.variant == method)?;
                     Some((t.scene.as_str(), row.metrics.get("mIoU")?.mean, row.metrics.get("NV-ARI")?.mean))
                 })
                 .collect();
@@ -73,7 +80,7 @@ pub fn markdown(spread: &[AcrossScenes]) -> String {
     let mut md = String::from(
         "\n## Across scenes\n\nPer-scene means, then the mean and the worst over scenes. The worst mIoU scene's \
          held-out masks, overlays and mask evidence (clusters, support planes, focus voters) are in \
-         `worst/<method>/`.\n\n\
+         `worst/<method>/` for each method.\n\n\
          | method | scenes | mIoU mean | mIoU worst | NV-ARI mean | NV-ARI worst |\n|---|---|---|---|---|---|\n",
     );
     for s in spread {
@@ -102,28 +109,28 @@ pub fn copy_worst_masks(
 ) -> anyhow::Result<()> {
     for s in spread {
         let Some(run_dir) = run_dir_of(&s.miou_worst.1, &s.method) else { continue };
+        use sos_core::segment::evaluate::{EVIDENCE_DIR, MASKS_DIR, OVERLAYS_DIR};
+        let images: Vec<(&str, std::path::PathBuf)> = [MASKS_DIR, OVERLAYS_DIR, EVIDENCE_DIR]
+            .into_iter()
+            .flat_map(|sub| {
+                let entries = std::fs::read_dir(run_dir.join(sub)).into_iter().flatten().flatten();
+                entries.map(|e| e.path()).filter(|p| p.extension().is_some_and(|e| e == "png")).map(move |p| (sub, p))
+            })
+            .collect();
+        // A run folder that is gone (a report rewritten from records alone) leaves the images an
+        // earlier report copied in place.
+        if images.is_empty() {
+            continue;
+        }
         let dest = out.join(WORST_DIR).join(&s.method);
         if dest.exists() {
             std::fs::remove_dir_all(&dest).with_context(|| format!("clearing {}", dest.display()))?;
         }
-        let mut copied = 0;
-        use sos_core::segment::evaluate::{EVIDENCE_DIR, MASKS_DIR, OVERLAYS_DIR};
-        for sub in [MASKS_DIR, OVERLAYS_DIR, EVIDENCE_DIR] {
-            let Ok(entries) = std::fs::read_dir(run_dir.join(sub)) else { continue };
+        for (sub, path) in &images {
             let target = dest.join(sub);
-            for entry in entries.flatten() {
-                let path = entry.path();
-                if path.extension().is_some_and(|e| e == "png") {
-                    std::fs::create_dir_all(&target).with_context(|| format!("creating {}", target.display()))?;
-                    let to = target.join(entry.file_name());
-                    std::fs::copy(&path, &to)
-                        .with_context(|| format!("copying {} to {}", path.display(), to.display()))?;
-                    copied += 1;
-                }
-            }
-        }
-        if copied == 0 {
-            continue;
+            std::fs::create_dir_all(&target).with_context(|| format!("creating {}", target.display()))?;
+            let to = target.join(path.file_name().expect("a listed file"));
+            std::fs::copy(path, &to).with_context(|| format!("copying {} to {}", path.display(), to.display()))?;
         }
         let note = format!(
             "The held-out masks of `{}` with `{}` (mIoU {:.3}), its worst scene.\n",
@@ -170,13 +177,20 @@ mod tests {
             SceneTable { scene: "c".into(), rows: vec![row("other", 0.5, 0.5, false)] },
         ];
         let spread = across_scenes(&tables);
-        assert_eq!(spread.len(), 1, "`other` has one scene, sweep rows are left out: {spread:?}");
+        assert_eq!(spread.len(), 1, "`other` and the sweep point `x` have one scene each: {spread:?}");
         let s = &spread[0];
         assert_eq!((s.method.as_str(), s.scenes), ("default", 2));
         assert!((s.miou_mean - 0.8).abs() < 1e-12 && s.miou_worst == (0.7, "b".into()));
         assert!((s.nv_ari_mean - 0.85).abs() < 1e-12 && s.nv_ari_worst == (0.8, "a".into()));
         assert!(markdown(&spread).contains("| default | 2 | 0.800 | 0.700 (b) | 0.850 | 0.800 (a) |"));
         assert!(markdown(&[]).is_empty());
+        // A sweep point on two scenes gets its row, after the methods.
+        let mut tables = tables;
+        tables[1].rows.push(row("x", 0.3, 0.2, true));
+        let spread = across_scenes(&tables);
+        let rows: Vec<(&str, usize)> = spread.iter().map(|s| (s.method.as_str(), s.scenes)).collect();
+        assert_eq!(rows, [("default", 2), ("x", 2)]);
+        assert!((spread[1].miou_mean - 0.2).abs() < 1e-12 && spread[1].miou_worst == (0.1, "a".into()));
     }
 
     #[test]
@@ -201,6 +215,11 @@ mod tests {
         assert_eq!(std::fs::read(dest.join("masks/v0.png")).unwrap(), b"png");
         assert!(!dest.join("masks/notes.txt").exists());
         assert!(std::fs::read_to_string(dest.join("README.md")).unwrap().contains("`b`"));
+        // Without the run folder (records only), the copied images stay.
+        std::fs::remove_dir_all(root.join("work")).unwrap();
+        copy_worst_masks(&root, &spread, |scene, method| Some(root.join(format!("work/{scene}__{method}__s0"))))
+            .unwrap();
+        assert_eq!(std::fs::read(dest.join("masks/v0.png")).unwrap(), b"png");
         std::fs::remove_dir_all(&root).ok();
     }
 }
