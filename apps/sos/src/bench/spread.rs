@@ -3,10 +3,11 @@
 //! masks copied next to the report (`worst/<method>/`), so a default is judged on its worst
 //! world, not its average, and a swept setting on every scene it ran on.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
+use sos_core::segment::evaluate::{EVIDENCE_DIR, MASKS_DIR, OVERLAYS_DIR};
 
 use super::report::SceneTable;
 
@@ -105,12 +106,11 @@ pub fn markdown(spread: &[AcrossScenes]) -> String {
 pub fn copy_worst_masks(
     out: &Path,
     spread: &[AcrossScenes],
-    run_dir_of: impl Fn(&str, &str) -> Option<std::path::PathBuf>,
+    run_dir_of: impl Fn(&str, &str) -> Option<PathBuf>,
 ) -> anyhow::Result<()> {
     for s in spread {
         let Some(run_dir) = run_dir_of(&s.miou_worst.1, &s.method) else { continue };
-        use sos_core::segment::evaluate::{EVIDENCE_DIR, MASKS_DIR, OVERLAYS_DIR};
-        let images: Vec<(&str, std::path::PathBuf)> = [MASKS_DIR, OVERLAYS_DIR, EVIDENCE_DIR]
+        let images: Vec<(&str, PathBuf)> = [MASKS_DIR, OVERLAYS_DIR, EVIDENCE_DIR]
             .into_iter()
             .flat_map(|sub| {
                 let entries = std::fs::read_dir(run_dir.join(sub)).into_iter().flatten().flatten();
