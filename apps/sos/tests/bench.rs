@@ -322,3 +322,42 @@ fn a_failing_run_is_recorded_and_the_matrix_goes_on() {
     assert!(md.contains("failed"), "{md}");
     std::fs::remove_dir_all(dir).ok();
 }
+
+#[test]
+fn a_method_of_another_build_runs_its_own_train_beside_this_builds_rows() {
+    let dir = temp_dir("program");
+    // "Another build" is this very binary on the scene's own config, so its row must give the
+    // metrics of this build's row (training is deterministic per seed).
+    let program = env!("CARGO_BIN_EXE_sos");
+    let methods = format!(
+        "[methods.other]\nprogram = \"{program}\"\nconfig = \"base.toml\"\nscenes = [\"tiny\"]\n[profiles.builds]\nscenes = [\"tiny\", \"missing\"]\nmethods = [\"default\", \"other\"]\nseeds = [0]\n"
+    );
+    write_bench(&dir, &methods);
+    let out = sos(&["bench", "bench.toml", "--profile", "builds"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let runs = dir.join("results/builds/runs");
+    assert!(!runs.join("missing__other__s0.json").exists(), "the method names its scenes");
+    let ours = json(&runs.join("tiny__default__s0.json"));
+    let other = json(&runs.join("tiny__other__s0.json"));
+    assert_eq!(other["status"], "done", "{other:#}");
+    for metric in ["miou", "nv_ari", "psnr", "ssim"] {
+        let (a, b) = (&ours["outcome"]["metrics"][metric], &other["outcome"]["metrics"][metric]);
+        assert!(a.as_f64().is_some() && a == b, "{metric}: {a} against {b}");
+    }
+    let o = &other["outcome"];
+    assert!(o["peak_rss_mib"].as_f64().unwrap() > 1.0 && o["timing"]["total"].as_f64().unwrap() > 0.0, "{o:#}");
+    assert_eq!(o["stage2_steps"].as_u64(), Some(4));
+    let md = std::fs::read_to_string(dir.join("results/builds/report.md")).unwrap();
+    assert!(md.lines().any(|l| l.starts_with("| other |")), "{md}");
+    // A build that fails is a recorded failure naming its log.
+    let broken = dir.join("broken.sh");
+    std::fs::write(&broken, "#!/bin/sh\nexit 7\n").unwrap();
+    std::process::Command::new("chmod").arg("+x").arg(&broken).status().unwrap();
+    let bench = std::fs::read_to_string(dir.join("bench.toml")).unwrap().replace(program, "broken.sh");
+    std::fs::write(dir.join("bench.toml"), bench).unwrap();
+    let out = sos(&["bench", "bench.toml", "--profile", "builds"], &dir);
+    assert_eq!(out.status.code(), Some(2));
+    let failed = json(&runs.join("tiny__other__s0.json"));
+    assert!(failed["error"].as_str().unwrap().contains("exited with code 7"), "{failed:#}");
+    std::fs::remove_dir_all(dir).ok();
+}

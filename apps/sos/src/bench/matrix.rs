@@ -86,6 +86,8 @@ pub struct PlannedRun {
     pub shard_key: String,
     /// Why the run cannot happen here (missing data or weights, a kind not built in).
     pub skip: Option<String>,
+    /// Another build that runs it with its own `sos train` (its config then in that build's keys).
+    pub program: Option<PathBuf>,
     /// Size of the view the run times with its mask (none: the scene's own).
     pub view_size: Option<[u32; 2]>,
 }
@@ -168,8 +170,16 @@ pub fn plan(file: &BenchFile, profile: Option<&str>, out: &Path) -> anyhow::Resu
             view_size,
         };
         for method in &methods {
-            let points = vec![Point { label: String::new(), set: file.methods[method].set.clone(), x: None }];
+            let spec = &file.methods[method];
+            if spec.scenes.as_ref().is_some_and(|s| !s.contains(scene_name)) {
+                continue;
+            }
             for seed in &seeds {
+                if spec.program.is_some() {
+                    runs.push(context.program_run(method, *seed)?);
+                    continue;
+                }
+                let points = vec![Point { label: String::new(), set: spec.set.clone(), x: None }];
                 runs.extend(context.runs(&value, method, None, &points, *seed)?);
             }
         }
@@ -285,10 +295,73 @@ impl RunContext<'_> {
                 stage1_hash,
                 shard_key,
                 skip,
+                program: None,
                 view_size: self.view_size,
             });
         }
         Ok(out)
+    }
+
+    /// The run of a method that another build runs (`program` and `config`): its config is
+    /// that build's, read as TOML with only the seed set; its hash covers the binary's bytes,
+    /// so a rebuilt program runs again.
+    fn program_run(&self, method: &str, seed: u64) -> anyhow::Result<PlannedRun> {
+        let fpath = self.file.path.display();
+        let spec = &self.file.methods[method];
+        let dir = self.file.dir();
+        let (program, config_path) = match (&spec.program, &spec.config) {
+            // Absolute, so that a bare file name is not looked up on `PATH`.
+            (Some(p), Some(c)) => (std::path::absolute(dir.join(p))?, dir.join(c)),
+            _ => unreachable!("checked on load: a program method has both"),
+        };
+        let missing = |key: &str, p: &Path| {
+            (!p.is_file()).then(|| format!("path missing: {} (`{key}` of method `{method}`)", p.display()))
+        };
+        // Nothing of the scene applies (its config, overrides, generated layout), so neither do
+        // its skips.
+        let skip = missing("program", &program).or_else(|| missing("config", &config_path));
+        let mut config = Value::Table(Table::new());
+        if skip.is_none() {
+            let text = std::fs::read_to_string(&config_path)
+                .with_context(|| format!("{fpath}: method `{method}`: reading {}", config_path.display()))?;
+            config = text
+                .parse::<Table>()
+                .map(Value::Table)
+                .with_context(|| format!("{fpath}: method `{method}`: {} is not TOML", config_path.display()))?;
+            overlay::set(&mut config, "seed", Value::Integer(seed as i64)).expect("the root is a table");
+        }
+        // The shard key must be the same on every machine, whatever it has built.
+        let shard_key =
+            hash_text(&format!("program {}\n{method}\n{seed}", spec.program.as_ref().expect("set").display()));
+        let hash = match skip {
+            Some(_) => shard_key.clone(),
+            None => {
+                let bytes = std::fs::read(&program)
+                    .with_context(|| format!("{fpath}: method `{method}`: reading {}", program.display()))?;
+                let binary: String = Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
+                let text = toml::to_string(&config).context("serialising a run config")?;
+                hash_text(&format!("# program sha256 = {binary}\n{text}"))
+            }
+        };
+        Ok(PlannedRun {
+            key: RunKey {
+                id: format!("{}__{method}__s{seed}", self.scene),
+                scene: self.scene.to_string(),
+                method: method.to_string(),
+                variant: method.to_string(),
+                sweep: None,
+                seed,
+            },
+            config_dir: config_path.parent().map(Path::to_path_buf).unwrap_or_default(),
+            generate: None,
+            config,
+            stage1_hash: hash.clone(),
+            hash,
+            shard_key,
+            skip,
+            program: Some(program),
+            view_size: None,
+        })
     }
 }
 
@@ -619,6 +692,37 @@ mod tests {
         assert!(why.contains("sam") && why.contains("`scene.masks`"), "{why}");
         assert_eq!(missing_files(&config("segments"), &dir, false), None);
         std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn another_builds_method_runs_its_own_config_on_its_scenes_and_reruns_when_rebuilt() {
+        let body = format!(
+            "{HEAD}[methods.old]\nprogram = \"old-sos\"\nconfig = \"old.toml\"\nscenes = [\"a\"]\n[profiles.p]\nmethods = [\"default\", \"old\"]\n"
+        );
+        let (dir, file) = bench(&body);
+        let file = file.unwrap();
+        // Not built yet: a skip naming the key.
+        let m = plan(&file, Some("p"), &dir).unwrap();
+        let old: Vec<_> = m.runs.iter().filter(|r| r.key.method == "old").collect();
+        assert_eq!(old.len(), 1, "only on scene `a`");
+        assert!(old[0].skip.as_deref().unwrap().contains("`program` of method `old`"), "{:?}", old[0].skip);
+        // Built: its config is that build's own keys (this build would refuse `legacy`), seeded.
+        std::fs::write(dir.join("old-sos"), "binary one").unwrap();
+        std::fs::write(dir.join("old.toml"), "name = \"x\"\n[legacy]\nkey = 1\n").unwrap();
+        let m = plan(&file, Some("p"), &dir).unwrap();
+        let run = m.runs.iter().find(|r| r.key.method == "old").unwrap();
+        assert_eq!(run.skip, None);
+        assert!(run.program.as_ref().is_some_and(|p| p.is_absolute() && p.ends_with("old-sos")));
+        assert_eq!(run.config.get("seed").and_then(Value::as_integer), Some(0));
+        assert!(run.config.get("legacy").is_some());
+        let default = m.runs.iter().find(|r| r.key.id == "a__default__s0").unwrap();
+        assert_ne!(run.stage1_hash, default.stage1_hash, "no stage 1 is shared across builds");
+        // Rebuilt: the same config runs again; the shard key stays.
+        std::fs::write(dir.join("old-sos"), "binary two").unwrap();
+        let again = plan(&file, Some("p"), &dir).unwrap();
+        let rerun = again.runs.iter().find(|r| r.key.method == "old").unwrap();
+        assert_ne!(rerun.hash, run.hash);
+        assert_eq!(rerun.shard_key, run.shard_key);
     }
 
     #[test]

@@ -243,6 +243,10 @@ fn execute(
         std::fs::remove_dir_all(&run_dir)
             .with_context(|| format!("removing the unfinished run {}", run_dir.display()))?;
     }
+    if let Some(program) = &run.program {
+        let log_path = out.join("logs").join(format!("{}.log", run.key.id));
+        return super::program::execute(run, program, &absolute(&work), &log_path);
+    }
     let mut config = run.config.clone();
     if let Value::Table(t) = &mut config {
         t.insert("name".into(), Value::String(run.key.id.clone()));

@@ -21,6 +21,10 @@
 //! [methods.default]
 //! [methods.no-geometry]
 //! set = { loss = [{ kind = "appearance", weight = 1.0 }] }
+//! [methods.older-build]                        # another build's `sos train` on its own config
+//! program = "../target/builds/b3a6cd8/sos"
+//! config = "../target/builds/b3a6cd8/src/configs/synthetic.toml"
+//! scenes = ["object-centric"]
 //!
 //! [[sweep]]
 //! name = "head-steps"
@@ -117,7 +121,7 @@ pub struct SceneSpec {
     pub about: String,
 }
 
-/// `[methods.<name>]`: a named overlay on every scene's config.
+/// `[methods.<name>]`: a named overlay on every scene's config, or another build's run.
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MethodSpec {
@@ -127,6 +131,15 @@ pub struct MethodSpec {
     /// One line for the report.
     #[serde(default)]
     pub about: String,
+    /// Scenes the method runs on (default: every scene of the profile).
+    pub scenes: Option<Vec<String>>,
+    /// Another `sos` build (its binary, relative to this file) that runs the method with its own
+    /// `sos train`, so that one report compares builds; needs `config`.
+    pub program: Option<PathBuf>,
+    /// With `program`: the whole run config in that build's own keys (relative to this file).
+    /// The scene's config and overrides do not apply: the row is that build's run, set beside
+    /// the scene's other rows.
+    pub config: Option<PathBuf>,
 }
 
 /// How a sweep combines the lists of its `vary` keys.
@@ -252,18 +265,48 @@ impl BenchFile {
                 bail!("{file}: name `{name}` may only hold letters, digits, `-` and `_`");
             }
         }
+        for (name, m) in &self.methods {
+            for scene in m.scenes.iter().flatten() {
+                if !self.scenes.contains_key(scene) {
+                    bail!(
+                        "{file}: method `{name}` names scene `{scene}`, which is not defined; scenes: {}",
+                        names(self.scenes.keys())
+                    );
+                }
+            }
+            match (&m.program, &m.config) {
+                (None, None) => {}
+                (Some(_), Some(_)) if m.set.is_empty() => {}
+                (Some(_), Some(_)) => bail!(
+                    "{file}: method `{name}` runs another build (`program`), whose keys this build cannot check: \
+                     write its overrides into its `config` instead of `set`"
+                ),
+                _ => bail!("{file}: method `{name}` needs both `program` (another build's `sos`) and `config` (its run config), or neither"),
+            }
+        }
+        if self.methods[&self.bench.baseline].program.is_some() {
+            bail!(
+                "{file}: the baseline method `{}` runs another build; the baseline must be this build's",
+                self.bench.baseline
+            );
+        }
         let mut seen = std::collections::BTreeSet::new();
         for s in &self.sweep {
             if !seen.insert(&s.name) {
                 bail!("{file}: two sweeps are named `{}`", s.name);
             }
             if let Some(m) = &s.method {
-                if !self.methods.contains_key(m) {
-                    bail!(
+                match self.methods.get(m) {
+                    None => bail!(
                         "{file}: sweep `{}` varies method `{m}`, which is not defined; methods: {}",
                         s.name,
                         names(self.methods.keys())
-                    );
+                    ),
+                    Some(spec) if spec.program.is_some() => bail!(
+                        "{file}: sweep `{}` varies method `{m}`, which runs another build: its keys cannot be varied here",
+                        s.name
+                    ),
+                    Some(_) => {}
                 }
             }
             for scene in s.scenes.iter().flatten() {
@@ -378,6 +421,24 @@ config = "a.toml"
     fn a_sweep_needs_vary_or_points() {
         let e = parse(&format!("{MINIMAL}[[sweep]]\nname = \"s\"\n")).unwrap_err().to_string();
         assert!(e.contains("either `vary`"), "{e}");
+    }
+
+    #[test]
+    fn a_method_run_by_another_build_needs_its_config_and_no_overrides() {
+        let with =
+            |body: &str| parse(&format!("{MINIMAL}[methods.old]\n{body}")).map(|_| ()).map_err(|e| e.to_string());
+        assert!(with("program = \"old/sos\"\nconfig = \"old.toml\"\nscenes = [\"a\"]\n").is_ok());
+        let e = with("program = \"old/sos\"\n").unwrap_err();
+        assert!(e.contains("method `old`") && e.contains("`config`"), "{e}");
+        let e = with("program = \"old/sos\"\nconfig = \"old.toml\"\nset = { seed = 1 }\n").unwrap_err();
+        assert!(e.contains("`set`"), "{e}");
+        let e = with("scenes = [\"b\"]\n").unwrap_err();
+        assert!(e.contains("method `old`") && e.contains("scene `b`"), "{e}");
+        let e = with(
+            "program = \"o\"\nconfig = \"o.toml\"\n[[sweep]]\nname = \"s\"\nmethod = \"old\"\nvary = { seed = [1] }\n",
+        )
+        .unwrap_err();
+        assert!(e.contains("sweep `s`") && e.contains("another build"), "{e}");
     }
 
     #[test]
