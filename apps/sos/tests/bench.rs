@@ -260,6 +260,11 @@ fn a_profile_times_its_view_at_the_size_it_names() {
     let run = json(&dir.join("results/big/runs/tiny__default__s0.json"));
     let view = &run["outcome"]["view"];
     assert_eq!((view["width"].as_u64(), view["height"].as_u64()), (Some(48), Some(36)), "{run:#}");
+    // The runner's own clock of the run, evaluations and view included, adds up in the report.
+    let wall = run["wall_seconds"].as_f64().unwrap();
+    assert!(wall >= run["outcome"]["timing"]["total"].as_f64().unwrap(), "{run:#}");
+    let md = std::fs::read_to_string(dir.join("results/big/report.md")).unwrap();
+    assert!(md.contains("Wall time of the runs: ") && md.contains("over 1 runs"), "{md}");
     // A size of zero is refused before any run, naming the profile.
     write_bench(&dir, "[profiles.bad]\nview_size = [0, 36]\n");
     let out = sos(&["bench", "bench.toml", "--profile", "bad"], &dir);

@@ -241,6 +241,11 @@ pub struct RunRecord {
     pub finished: String,
     /// What it measured (absent unless done).
     pub outcome: Option<Outcome>,
+    /// Wall seconds the runner spent on it, from writing its config to reading its outcome:
+    /// curve evaluations, the timed view and a layout written for it included. Absent for a
+    /// run that reused another's result (it cost nothing) and in records of older builds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub wall_seconds: Option<f64>,
 }
 
 impl RunRecord {
@@ -263,6 +268,7 @@ impl RunRecord {
             machine: Machine::here(),
             finished: utc_now(),
             outcome,
+            wall_seconds: None,
         }
     }
 

@@ -103,11 +103,66 @@ pub struct Report {
     pub finished: String,
     /// Runs finished, failed and skipped.
     pub counts: BTreeMap<String, usize>,
+    /// What the folder's runs cost on their machines.
+    #[serde(default)]
+    pub wall: WallTime,
     /// One table per scene.
     pub scenes: Vec<SceneTable>,
     /// Each method's mean and worst over scenes.
     #[serde(default)]
     pub across: Vec<AcrossScenes>,
+}
+
+/// The wall time a result folder's runs took: what one machine running the profile from
+/// scratch spends on them (the shards of a merged folder add up).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct WallTime {
+    /// Seconds summed over the runs that carry a time.
+    pub seconds: f64,
+    /// Runs that carry one (they ran, or failed, here or in a merged shard).
+    pub runs: usize,
+    /// Finished or failed runs without one: results reused from a run with the same config,
+    /// which cost nothing, and records written by builds that kept no time.
+    pub untimed: usize,
+}
+
+impl WallTime {
+    fn of(records: &[RunRecord]) -> WallTime {
+        let mut w = WallTime::default();
+        for r in records.iter().filter(|r| r.status != Status::Skipped) {
+            match r.wall_seconds {
+                Some(s) if s.is_finite() => {
+                    w.seconds += s;
+                    w.runs += 1;
+                }
+                _ => w.untimed += 1,
+            }
+        }
+        w
+    }
+
+    /// `Wall time of the runs: 1 h 42 min over 57 runs ...` for the report's header.
+    fn describe(&self) -> String {
+        let minutes = (self.seconds / 60.0).round() as u64;
+        let time = if minutes >= 60 {
+            format!("{} h {:02} min", minutes / 60, minutes % 60)
+        } else {
+            format!("{minutes} min")
+        };
+        let mut line = format!(
+            "Wall time of the runs: {time} over {} runs (each run's process from its config to its outcome, \
+             learning-curve evaluations and the timed view included)",
+            self.runs
+        );
+        if self.untimed > 0 {
+            line.push_str(&format!(
+                "; {} more carry no time (a result reused from a run with the same config, or a record of a build \
+                 that kept none)",
+                self.untimed
+            ));
+        }
+        line + ".\n"
+    }
 }
 
 /// Builds the report of `records`.
@@ -144,6 +199,7 @@ pub fn build(records: &[RunRecord], meta: &BenchMeta) -> Report {
             .max()
             .unwrap_or_default(),
         counts,
+        wall: WallTime::of(records),
         scenes,
         across,
     }
@@ -271,6 +327,9 @@ impl Report {
             self.counts.iter().map(|(k, v)| format!("{v} {k}")).collect::<Vec<_>>().join(", "),
             self.meta.baseline
         ));
+        if self.wall.runs > 0 {
+            md.push_str(&self.wall.describe());
+        }
         if let Some(t) = &self.meta.target {
             md.push_str(&format!(
                 "To target is the wall time until the run's held-out masks met {}: setup, stage 1, stage 2 up to \
@@ -581,5 +640,33 @@ mod tests {
         assert!((s.std - 2f64.sqrt()).abs() < 1e-12);
         assert!(Stat::of([f64::INFINITY]).is_none());
         assert_eq!(Stat::of([5.0]).unwrap().std, 0.0);
+    }
+
+    fn record(id: &str, status: &str, wall: Option<f64>) -> RunRecord {
+        serde_json::from_value(serde_json::json!({
+            "id": id, "scene": "s", "method": "m", "variant": "m", "sweep": null, "seed": 0,
+            "hash": "h", "status": status, "error": null, "config": "", "commit": "c",
+            "machine": { "cpu": "cpu", "cores": 2, "memory_gib": 1.0, "host": "vm" },
+            "finished": "2026-01-01 00:00", "outcome": null, "wall_seconds": wall,
+        }))
+        .unwrap()
+    }
+
+    #[test]
+    fn the_wall_time_adds_up_the_runs_that_carry_one() {
+        let records = [
+            record("a", "done", Some(3000.0)),
+            record("b", "failed", Some(660.0)),
+            // Reused another's result, and an older record: no time.
+            record("c", "done", None),
+            record("d", "done", None),
+            // Skipped runs cost nothing and count nowhere.
+            record("e", "skipped", None),
+        ];
+        let w = WallTime::of(&records);
+        assert_eq!((w.seconds, w.runs, w.untimed), (3660.0, 2, 2));
+        let line = w.describe();
+        assert!(line.starts_with("Wall time of the runs: 1 h 01 min over 2 runs"), "{line}");
+        assert!(line.contains("2 more carry no time"), "{line}");
     }
 }

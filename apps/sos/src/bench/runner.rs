@@ -110,6 +110,7 @@ pub fn run_all(
             let mut copy = r.clone();
             let note = format!("same config as `{}`: its result is reused", r.key.id);
             copy.key = run.key.clone();
+            copy.wall_seconds = None;
             if let Some(o) = copy.outcome.as_mut() {
                 o.notes.push(note.clone());
                 // No checkpoint of this run's own exists: it is no stage 1 to share.
@@ -120,7 +121,7 @@ pub fn run_all(
             // Only this invocation's records: each is the latest of its id, and its work
             // folder holds that very run (an older record of a rerun id would not).
             let source = records.iter().find(|r| share_stage1 && shares_stage1(r, run, &work_dir));
-            match execute(run, out, curve_points, source) {
+            let (mut record, how) = match execute(run, out, curve_points, source) {
                 Ok(outcome) => {
                     tally.ran += 1;
                     let summary = summary_line(&outcome, started.elapsed().as_secs_f64());
@@ -132,7 +133,9 @@ pub fn run_all(
                     let first = message.lines().next().unwrap_or("").to_string();
                     (RunRecord::new(run, Status::Failed, Some(message), None, commit), format!("FAILED: {first}"))
                 }
-            }
+            };
+            record.wall_seconds = Some(started.elapsed().as_secs_f64());
+            (record, how)
         };
         // Unchanged records are not rewritten, so a rerun of a finished matrix writes nothing.
         let unchanged = cached
