@@ -338,7 +338,7 @@ impl RunContext<'_> {
             None => {
                 let bytes = std::fs::read(&program)
                     .with_context(|| format!("{fpath}: method `{method}`: reading {}", program.display()))?;
-                let binary: String = Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
+                let binary = hash_bytes(&bytes);
                 let text = toml::to_string(&config).context("serialising a run config")?;
                 hash_text(&format!("# program sha256 = {binary}\n{text}"))
             }
@@ -531,7 +531,12 @@ fn stage1_hash(config: &Value, generate: Option<&Generate>, curve_points: usize)
 
 /// Hex SHA-256 of a text.
 pub fn hash_text(text: &str) -> String {
-    Sha256::digest(text.as_bytes()).iter().map(|b| format!("{b:02x}")).collect()
+    hash_bytes(text.as_bytes())
+}
+
+/// Hex SHA-256 of bytes.
+fn hash_bytes(bytes: &[u8]) -> String {
+    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
 }
 
 fn parse_generate(spec: &Table) -> anyhow::Result<Generate> {

@@ -12,7 +12,6 @@ use std::time::Instant;
 
 use anyhow::{bail, Context};
 use serde_json::Value as Json;
-use toml::Value;
 
 use super::matrix::{hash_text, PlannedRun};
 use super::record::{cpu_ticks, stolen_between, Metrics, Outcome, Timing};
@@ -30,14 +29,9 @@ struct ChildUsage {
 /// Runs `run` with `program train <config>` in `work/<id>` and returns what it measured.
 pub fn execute(run: &PlannedRun, program: &Path, work: &Path, log_path: &Path) -> anyhow::Result<Outcome> {
     let run_dir = work.join(&run.key.id);
-    let mut config = run.config.clone();
-    if let Value::Table(t) = &mut config {
-        t.insert("name".into(), Value::String(run.key.id.clone()));
-        t.insert("output_dir".into(), Value::String(work.display().to_string()));
-    }
     // The config stays beside its original so that its relative paths (data, weights) resolve.
     let config_path = run.config_dir.join(format!(".sos-bench-{}.toml", &hash_text(&run.key.id)[..12]));
-    std::fs::write(&config_path, toml::to_string(&config)?)
+    std::fs::write(&config_path, super::runner::run_config_text(run, work)?)
         .with_context(|| format!("writing {} (is the program's config folder writable?)", config_path.display()))?;
     let log = std::fs::File::create(log_path).with_context(|| format!("creating {}", log_path.display()))?;
     let ticks = cpu_ticks();
@@ -117,8 +111,7 @@ fn outcome_from_metrics(m: &Json, wall: f64) -> Outcome {
         }
         None => None,
     };
-    let segmentation = ["stage2", "test", "segmentation"];
-    let seg = |key: &'static str| [segmentation[0], segmentation[1], segmentation[2], key];
+    let seg = |key: &'static str| ["stage2", "test", "segmentation", key];
     let metrics = Metrics {
         psnr: metric("PSNR", &["test", "psnr"]),
         ssim: metric("SSIM", &["test", "ssim"]),

@@ -246,21 +246,15 @@ fn execute(
         std::fs::remove_dir_all(&run_dir)
             .with_context(|| format!("removing the unfinished run {}", run_dir.display()))?;
     }
+    let log_path = out.join("logs").join(format!("{}.log", run.key.id));
     if let Some(program) = &run.program {
-        let log_path = out.join("logs").join(format!("{}.log", run.key.id));
         return super::program::execute(run, program, &absolute(&work), &log_path);
     }
-    let mut config = run.config.clone();
-    if let Value::Table(t) = &mut config {
-        t.insert("name".into(), Value::String(run.key.id.clone()));
-        t.insert("output_dir".into(), Value::String(absolute(&work).display().to_string()));
-    }
     let config_path = work.join(format!("{}.toml", run.key.id));
-    std::fs::write(&config_path, toml::to_string(&config)?)
+    std::fs::write(&config_path, run_config_text(run, &absolute(&work))?)
         .with_context(|| format!("writing {}", config_path.display()))?;
     let outcome_path = work.join(format!("{}.outcome.json", run.key.id));
     let _ = std::fs::remove_file(&outcome_path);
-    let log_path = out.join("logs").join(format!("{}.log", run.key.id));
     let log = std::fs::File::create(&log_path).with_context(|| format!("creating {}", log_path.display()))?;
     let exe = own_binary()?;
     let mut command = Command::new(exe);
@@ -301,6 +295,16 @@ fn execute(
         serde_json::from_str(&text).with_context(|| format!("{} is not an outcome", outcome_path.display()))?;
     std::fs::remove_file(&outcome_path).ok();
     Ok(outcome)
+}
+
+/// The run's config as its process reads it: named after the run, writing into `work/<id>`.
+pub(super) fn run_config_text(run: &PlannedRun, work: &Path) -> anyhow::Result<String> {
+    let mut config = run.config.clone();
+    if let Value::Table(t) = &mut config {
+        t.insert("name".into(), Value::String(run.key.id.clone()));
+        t.insert("output_dir".into(), Value::String(work.display().to_string()));
+    }
+    Ok(toml::to_string(&config)?)
 }
 
 /// The binary to start runs with: this one, or, when it was rebuilt while the matrix runs
