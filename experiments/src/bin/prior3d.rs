@@ -1,0 +1,234 @@
+//! How well a mask drawn from the field's 3D geometry alone would segment a run's held-out
+//! views: the upper bound of a geometric objectness prior for stage 2.
+//!
+//! 1. The density is sampled at the centres of an `N³` grid over the unit cube the field
+//!    models; a cell is occupied when its alpha over its own world size exceeds `ALPHA` (0.3).
+//! 2. Up to three large planes are found among the occupied cells by RANSAC (tolerance
+//!    `TOL_CELLS` (2) local cell sizes): the ground and walls.
+//! 3. The occupied cells off every plane are grouped into 26-connected components; the object
+//!    is the component nearest the focus (where the training axes meet, or for a forward-facing
+//!    rig the point on the mean axis at the median central depth of each view), plus every
+//!    component within `JOIN` (0.15) of the view camera's distance from the focus.
+//! 4. Each held-out view's rendered surface points are foreground when their cell (dilated by
+//!    one) is an object cell; the mask is scored against the view's exact mask.
+//!
+//! `cargo run --release --manifest-path experiments/Cargo.toml --bin prior3d -- CONFIG CHECKPOINT [N]`
+//! (`N` 128 by default; the environment variables `ALPHA`, `TOL_CELLS` and `JOIN` change the
+//! thresholds).
+
+use rand::{Rng, SeedableRng};
+use sos_core::camera::{cross, dot, normalize, sub, Vec3};
+use sos_core::segment::infer::{render_logits, FocusTarget};
+use sos_core::segment::store::load_with_head;
+use sos_core::train::Session;
+use sos_plugins as _;
+
+/// A setting from the environment variable `name`, or `default`.
+fn setting(name: &str, default: f32) -> f32 {
+    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
+}
+
+/// Alpha over a cell's world size above which the cell is occupied (`ALPHA`).
+fn alpha() -> f32 {
+    setting("ALPHA", 0.3)
+}
+
+/// Plane tolerance, in local cell sizes (`TOL_CELLS`).
+fn tol_cells() -> f32 {
+    setting("TOL_CELLS", 2.0)
+}
+
+/// Components within this share of the view camera's distance from the focus join the object
+/// (`JOIN`).
+fn join() -> f32 {
+    setting("JOIN", 0.15)
+}
+
+/// Smallest share of the occupied cells a plane must hold.
+const MIN_PLANE_SHARE: f64 = 0.1;
+
+fn main() {
+    sos_benchmarks::setup();
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    if args.len() < 2 {
+        eprintln!("usage: prior3d CONFIG CHECKPOINT [N]");
+        std::process::exit(2);
+    }
+    let n: usize = args.get(2).map_or(128, |s| s.parse().expect("N is a number"));
+    let mut session = Session::open(args[0].as_ref()).expect("config opens");
+    let (loaded, _) = load_with_head(&mut session, Some(args[1].as_ref())).expect("checkpoint loads");
+    let head = loaded.expect("the checkpoint holds a segmentation head").head;
+    let c = session.contraction;
+
+    // 1. Occupied cells.
+    let cells = n * n * n;
+    let centre = |i: usize| -> Vec3 {
+        let (x, y, z) = (i % n, (i / n) % n, i / (n * n));
+        [(x as f32 + 0.5) / n as f32, (y as f32 + 0.5) / n as f32, (z as f32 + 0.5) / n as f32]
+    };
+    let world: Vec<Vec3> = (0..cells).map(|i| c.from_unit(centre(i))).collect();
+    // World size of a cell: the distance to the centre of its +x+y+z neighbour over √3.
+    let size: Vec<f32> = (0..cells)
+        .map(|i| {
+            let u = centre(i);
+            let v = [u[0] + 1.0 / n as f32, u[1] + 1.0 / n as f32, u[2] + 1.0 / n as f32];
+            let d = sub(c.from_unit(v), world[i]);
+            (dot(d, d).sqrt() / 3f32.sqrt()).max(1e-9)
+        })
+        .collect();
+    let mut sigma = vec![0.0f32; cells];
+    session.field.density(&world, &mut sigma);
+    let occupied: Vec<bool> = (0..cells).map(|i| 1.0 - (-sigma[i] * size[i]).exp() > alpha()).collect();
+    let occ: Vec<usize> = (0..cells).filter(|&i| occupied[i]).collect();
+    eprintln!("{} of {cells} cells occupied", occ.len());
+
+    // 2. Planes.
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+    let mut left = occ.clone();
+    let mut on_plane = vec![false; cells];
+    for k in 0..3 {
+        if left.len() < 3 {
+            break;
+        }
+        let on = |plane: &(Vec3, f32), i: usize| (dot(plane.0, world[i]) - plane.1).abs() <= tol_cells() * size[i];
+        let mut best: Option<(usize, (Vec3, f32))> = None;
+        for _ in 0..400 {
+            let [a, b, cc] = [0; 3].map(|_| world[left[rng.gen_range(0..left.len())]]);
+            let nrm = cross(sub(b, a), sub(cc, a));
+            if dot(nrm, nrm) < 1e-18 {
+                continue;
+            }
+            let nrm = normalize(nrm);
+            let plane = (nrm, dot(nrm, a));
+            let count = (0..2000).map(|_| left[rng.gen_range(0..left.len())]).filter(|&i| on(&plane, i)).count();
+            if best.is_none_or(|(m, _)| count > m) {
+                best = Some((count, plane));
+            }
+        }
+        let Some((_, plane)) = best else { break };
+        let held: Vec<usize> = left.iter().copied().filter(|&i| on(&plane, i)).collect();
+        if (held.len() as f64) < MIN_PLANE_SHARE * occ.len() as f64 {
+            break;
+        }
+        eprintln!(
+            "plane {k}: normal {:?}, {} cells ({:.0}%)",
+            plane.0,
+            held.len(),
+            100.0 * held.len() as f64 / occ.len() as f64
+        );
+        for &i in &held {
+            on_plane[i] = true;
+        }
+        // Every occupied cell near the plane is the plane's, even among those taken already.
+        for &i in &occ {
+            if on(&plane, i) {
+                on_plane[i] = true;
+            }
+        }
+        left.retain(|&i| !on_plane[i]);
+    }
+
+    // 3. Components of the cells off the planes.
+    let mut comp = vec![u32::MAX; cells];
+    let mut sizes = Vec::new();
+    for &s in &left {
+        if comp[s] != u32::MAX {
+            continue;
+        }
+        let id = sizes.len() as u32;
+        let mut stack = vec![s];
+        comp[s] = id;
+        let mut count = 0usize;
+        while let Some(i) = stack.pop() {
+            count += 1;
+            let (x, y, z) = ((i % n) as i64, ((i / n) % n) as i64, (i / (n * n)) as i64);
+            for dz in -1..=1 {
+                for dy in -1..=1 {
+                    for dx in -1..=1 {
+                        let (a, b, cz) = (x + dx, y + dy, z + dz);
+                        if a < 0 || b < 0 || cz < 0 || a >= n as i64 || b >= n as i64 || cz >= n as i64 {
+                            continue;
+                        }
+                        let j = (cz as usize * n + b as usize) * n + a as usize;
+                        if occupied[j] && !on_plane[j] && comp[j] == u32::MAX {
+                            comp[j] = id;
+                            stack.push(j);
+                        }
+                    }
+                }
+            }
+        }
+        sizes.push(count);
+    }
+    eprintln!("{} components off the planes; largest {:?}", sizes.len(), {
+        let mut s = sizes.clone();
+        s.sort_unstable_by(|a, b| b.cmp(a));
+        s.truncate(6);
+        s
+    });
+
+    // 4. Score the held-out views.
+    let focus_target = FocusTarget::of_scene(&session.scene);
+    let mut sum = 0.0;
+    let tests = session.scene.test.clone();
+    for &v in &tests {
+        let view = &session.scene.views[v];
+        let r = render_logits(&session, &head, &view.camera);
+        let (w, h) = (r.rgb.width, r.rgb.height);
+        let focus = focus_target.point_for(&r.depth, w, h).unwrap_or(session.scene.focus_point());
+        let reach = {
+            let d = sub(view.camera.origin(), focus);
+            dot(d, d).sqrt() * join()
+        };
+        // Per component, its nearest cell's distance to the focus.
+        let mut nearest = vec![f32::INFINITY; sizes.len()];
+        for &i in &left {
+            let d = sub(world[i], focus);
+            let d = dot(d, d).sqrt();
+            let k = comp[i] as usize;
+            nearest[k] = nearest[k].min(d);
+        }
+        let closest = nearest.iter().copied().fold(f32::INFINITY, f32::min);
+        let chosen: Vec<bool> = nearest.iter().map(|&d| d <= closest.max(reach)).collect();
+        let object = |u: Vec3| -> bool {
+            let g = u.map(|v| (v * n as f32).floor() as i64);
+            for dz in -1..=1 {
+                for dy in -1..=1 {
+                    for dx in -1..=1 {
+                        let (a, b, cz) = (g[0] + dx, g[1] + dy, g[2] + dz);
+                        if a < 0 || b < 0 || cz < 0 || a >= n as i64 || b >= n as i64 || cz >= n as i64 {
+                            continue;
+                        }
+                        let j = (cz as usize * n + b as usize) * n + a as usize;
+                        if comp[j] != u32::MAX && chosen[comp[j] as usize] {
+                            return true;
+                        }
+                    }
+                }
+            }
+            false
+        };
+        let pred: Vec<bool> = r.points.iter().map(|p| p.is_some_and(|p| object(c.to_unit(p)))).collect();
+        let Some(gt) = view.mask.as_ref().map(|m| m.resized_nearest(w, h)) else {
+            eprintln!("{}: no exact mask", view.name);
+            continue;
+        };
+        let (mut i_fg, mut u_fg, mut i_bg, mut u_bg) = (0usize, 0usize, 0usize, 0usize);
+        for (p, g) in pred.iter().zip(&gt.data) {
+            let g = *g > 0.5;
+            i_fg += usize::from(*p && g);
+            u_fg += usize::from(*p || g);
+            i_bg += usize::from(!*p && !g);
+            u_bg += usize::from(!*p || !g);
+        }
+        let (fg, bg) = (i_fg as f64 / u_fg.max(1) as f64, i_bg as f64 / u_bg.max(1) as f64);
+        println!(
+            "{}: mIoU {:.3} (FG {fg:.3}, BG {bg:.3}), {} components chosen",
+            view.name,
+            (fg + bg) / 2.0,
+            chosen.iter().filter(|&&c| c).count()
+        );
+        sum += (fg + bg) / 2.0;
+    }
+    println!("mean mIoU {:.3} over {} views", sum / tests.len().max(1) as f64, tests.len());
+}
