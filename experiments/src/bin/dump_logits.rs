@@ -34,9 +34,10 @@ fn main() {
         let view = &session.scene.views[i];
         let r = render_logits(&session, &head, &view.camera);
         let (w, h) = (r.rgb.width, r.rgb.height);
+        // A second render of the view: the mask keeps its depth and points but not its logits.
         let mask = inference.segment(&view.camera, &view.name).expect("mask");
         let gt = view.mask.as_ref().map(|m| m.resized_nearest(w, h));
-        let mut bytes = Vec::with_capacity(w * h * (r.channels + 5) * 4);
+        let mut bytes = Vec::with_capacity(w * h * (r.channels + 6) * 4);
         for p in 0..w * h {
             let mut row: Vec<f32> = r.logits[p * r.channels..(p + 1) * r.channels].to_vec();
             row.push(r.depth[p]);

@@ -18,6 +18,7 @@
 
 use rand::{Rng, SeedableRng};
 use sos_core::camera::{cross, dot, normalize, sub, Vec3};
+use sos_core::metrics::binary_iou;
 use sos_core::segment::infer::{render_logits, FocusTarget};
 use sos_core::segment::store::load_with_head;
 use sos_core::train::Session;
@@ -47,6 +48,20 @@ fn join() -> f32 {
 /// Smallest share of the occupied cells a plane must hold.
 const MIN_PLANE_SHARE: f64 = 0.1;
 
+/// Cells of an `n³` grid within one step of cell `g` along every axis (itself included), by
+/// index; `g` may lie outside the grid.
+fn neighbours(n: usize, g: [i64; 3]) -> impl Iterator<Item = usize> {
+    let inside = move |v: i64| (0..n as i64).contains(&v);
+    (-1..=1i64).flat_map(move |dz| {
+        (-1..=1i64).flat_map(move |dy| {
+            (-1..=1i64).filter_map(move |dx| {
+                let (x, y, z) = (g[0] + dx, g[1] + dy, g[2] + dz);
+                (inside(x) && inside(y) && inside(z)).then(|| (z as usize * n + y as usize) * n + x as usize)
+            })
+        })
+    })
+}
+
 fn main() {
     sos_benchmarks::setup();
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -59,6 +74,7 @@ fn main() {
     let (loaded, _) = load_with_head(&mut session, Some(args[1].as_ref())).expect("checkpoint loads");
     let head = loaded.expect("the checkpoint holds a segmentation head").head;
     let c = session.contraction;
+    let (alpha, tol_cells, join) = (alpha(), tol_cells(), join());
 
     // 1. Occupied cells.
     let cells = n * n * n;
@@ -78,7 +94,7 @@ fn main() {
         .collect();
     let mut sigma = vec![0.0f32; cells];
     session.field.density(&world, &mut sigma);
-    let occupied: Vec<bool> = (0..cells).map(|i| 1.0 - (-sigma[i] * size[i]).exp() > alpha()).collect();
+    let occupied: Vec<bool> = (0..cells).map(|i| 1.0 - (-sigma[i] * size[i]).exp() > alpha).collect();
     let occ: Vec<usize> = (0..cells).filter(|&i| occupied[i]).collect();
     eprintln!("{} of {cells} cells occupied", occ.len());
 
@@ -90,7 +106,7 @@ fn main() {
         if left.len() < 3 {
             break;
         }
-        let on = |plane: &(Vec3, f32), i: usize| (dot(plane.0, world[i]) - plane.1).abs() <= tol_cells() * size[i];
+        let on = |plane: &(Vec3, f32), i: usize| (dot(plane.0, world[i]) - plane.1).abs() <= tol_cells * size[i];
         let mut best: Option<(usize, (Vec3, f32))> = None;
         for _ in 0..400 {
             let [a, b, cc] = [0; 3].map(|_| world[left[rng.gen_range(0..left.len())]]);
@@ -116,9 +132,6 @@ fn main() {
             held.len(),
             100.0 * held.len() as f64 / occ.len() as f64
         );
-        for &i in &held {
-            on_plane[i] = true;
-        }
         // Every occupied cell near the plane is the plane's, even among those taken already.
         for &i in &occ {
             if on(&plane, i) {
@@ -141,20 +154,11 @@ fn main() {
         let mut count = 0usize;
         while let Some(i) = stack.pop() {
             count += 1;
-            let (x, y, z) = ((i % n) as i64, ((i / n) % n) as i64, (i / (n * n)) as i64);
-            for dz in -1..=1 {
-                for dy in -1..=1 {
-                    for dx in -1..=1 {
-                        let (a, b, cz) = (x + dx, y + dy, z + dz);
-                        if a < 0 || b < 0 || cz < 0 || a >= n as i64 || b >= n as i64 || cz >= n as i64 {
-                            continue;
-                        }
-                        let j = (cz as usize * n + b as usize) * n + a as usize;
-                        if occupied[j] && !on_plane[j] && comp[j] == u32::MAX {
-                            comp[j] = id;
-                            stack.push(j);
-                        }
-                    }
+            let g = [(i % n) as i64, ((i / n) % n) as i64, (i / (n * n)) as i64];
+            for j in neighbours(n, g) {
+                if occupied[j] && !on_plane[j] && comp[j] == u32::MAX {
+                    comp[j] = id;
+                    stack.push(j);
                 }
             }
         }
@@ -169,7 +173,7 @@ fn main() {
 
     // 4. Score the held-out views.
     let focus_target = FocusTarget::of_scene(&session.scene);
-    let mut sum = 0.0;
+    let (mut sum, mut scored) = (0.0, 0usize);
     let tests = session.scene.test.clone();
     for &v in &tests {
         let view = &session.scene.views[v];
@@ -178,7 +182,7 @@ fn main() {
         let focus = focus_target.point_for(&r.depth, w, h).unwrap_or(session.scene.focus_point());
         let reach = {
             let d = sub(view.camera.origin(), focus);
-            dot(d, d).sqrt() * join()
+            dot(d, d).sqrt() * join
         };
         // Per component, its nearest cell's distance to the focus.
         let mut nearest = vec![f32::INFINITY; sizes.len()];
@@ -190,45 +194,27 @@ fn main() {
         }
         let closest = nearest.iter().copied().fold(f32::INFINITY, f32::min);
         let chosen: Vec<bool> = nearest.iter().map(|&d| d <= closest.max(reach)).collect();
-        let object = |u: Vec3| -> bool {
-            let g = u.map(|v| (v * n as f32).floor() as i64);
-            for dz in -1..=1 {
-                for dy in -1..=1 {
-                    for dx in -1..=1 {
-                        let (a, b, cz) = (g[0] + dx, g[1] + dy, g[2] + dz);
-                        if a < 0 || b < 0 || cz < 0 || a >= n as i64 || b >= n as i64 || cz >= n as i64 {
-                            continue;
-                        }
-                        let j = (cz as usize * n + b as usize) * n + a as usize;
-                        if comp[j] != u32::MAX && chosen[comp[j] as usize] {
-                            return true;
-                        }
-                    }
-                }
-            }
-            false
+        let object = |u: Vec3| {
+            neighbours(n, u.map(|v| (v * n as f32).floor() as i64))
+                .any(|j| comp[j] != u32::MAX && chosen[comp[j] as usize])
         };
         let pred: Vec<bool> = r.points.iter().map(|p| p.is_some_and(|p| object(c.to_unit(p)))).collect();
         let Some(gt) = view.mask.as_ref().map(|m| m.resized_nearest(w, h)) else {
             eprintln!("{}: no exact mask", view.name);
             continue;
         };
-        let (mut i_fg, mut u_fg, mut i_bg, mut u_bg) = (0usize, 0usize, 0usize, 0usize);
-        for (p, g) in pred.iter().zip(&gt.data) {
-            let g = *g > 0.5;
-            i_fg += usize::from(*p && g);
-            u_fg += usize::from(*p || g);
-            i_bg += usize::from(!*p && !g);
-            u_bg += usize::from(!*p || !g);
-        }
-        let (fg, bg) = (i_fg as f64 / u_fg.max(1) as f64, i_bg as f64 / u_bg.max(1) as f64);
+        let gt: Vec<bool> = gt.data.iter().map(|&g| g >= 0.5).collect();
+        let iou = binary_iou(&gt, &pred).expect("the mask has the view's size");
+        let miou = iou.miou().unwrap_or(0.0);
         println!(
-            "{}: mIoU {:.3} (FG {fg:.3}, BG {bg:.3}), {} components chosen",
+            "{}: mIoU {miou:.3} (FG {:.3}, BG {:.3}), {} components chosen",
             view.name,
-            (fg + bg) / 2.0,
+            iou.fg.unwrap_or(0.0),
+            iou.bg.unwrap_or(0.0),
             chosen.iter().filter(|&&c| c).count()
         );
-        sum += (fg + bg) / 2.0;
+        sum += miou;
+        scored += 1;
     }
-    println!("mean mIoU {:.3} over {} views", sum / tests.len().max(1) as f64, tests.len());
+    println!("mean mIoU {:.3} over {scored} views", sum / scored.max(1) as f64);
 }
