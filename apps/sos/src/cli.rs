@@ -106,7 +106,7 @@ enum Command {
 }
 
 /// Parses the command line and runs the command; errors print their causes and give exit
-/// code 2.
+/// code 2 (3: a benchmark matrix that ran to its end with failed runs).
 pub fn run() -> ExitCode {
     crate::allocator::keep_freed_memory();
     let cli = Cli::parse();
@@ -138,7 +138,10 @@ pub fn run() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
-            ExitCode::from(2)
+            match e.downcast_ref::<crate::bench::cli::RunsFailed>() {
+                Some(_) => ExitCode::from(crate::bench::cli::RunsFailed::EXIT_CODE),
+                None => ExitCode::from(2),
+            }
         }
     }
 }

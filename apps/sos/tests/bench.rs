@@ -1,13 +1,16 @@
 //! End-to-end tests of `sos bench`: a tiny matrix runs, writes its records, report and plots;
 //! a rerun is all cached and rewrites nothing; bad key paths fail before any run; missing
-//! data is a skip and a broken run a recorded failure; shards merge into the single-process
-//! result; leftovers of a killed run are cleaned up.
+//! data is a skip (a finished run's result stays) and a broken run a recorded failure (exit
+//! code 3); shards merge into the single-process result; leftovers of a killed run are cleaned
+//! up.
 
 use std::path::{Path, PathBuf};
 
 mod common;
 
 use common::{sos, text};
+use sos_datasets::layouts::Format;
+use sos_datasets::synthetic::{generate, SyntheticConfig};
 
 fn temp_dir(test: &str) -> PathBuf {
     common::temp_dir("sos-bench", test)
@@ -298,6 +301,35 @@ fn an_unknown_key_path_fails_before_any_run() {
 }
 
 #[test]
+fn a_finished_run_stays_cached_when_its_data_goes_missing() {
+    let dir = temp_dir("data-gone");
+    let scene = generate(&SyntheticConfig { width: 32, height: 24, views: 8, ..SyntheticConfig::default() });
+    Format::Llff.write(&scene, &dir.join("capture")).unwrap();
+    let path = Format::Llff.scene_dir(&dir.join("capture"));
+    write_bench(&dir, "");
+    let bench = std::fs::read_to_string(dir.join("bench.toml")).unwrap();
+    let bench = bench
+        .replace("seeds = [0, 1]", "seeds = [0]")
+        .replace("[methods.short]\nset = { \"segment.steps\" = 2 }\n", "")
+        .replace("\"no/such/folder\"", &format!("{:?}", path.display().to_string()));
+    std::fs::write(dir.join("bench.toml"), bench).unwrap();
+    let bench_only = |dir: &Path| sos(&["bench", "bench.toml"], dir);
+    let out = bench_only(&dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let record = dir.join("results/all/runs/missing__default__s0.json");
+    assert_eq!(json(&record)["status"], "done", "the capture exists: the run happens");
+    let before = std::fs::read_to_string(&record).unwrap();
+
+    std::fs::remove_dir_all(dir.join("capture")).unwrap();
+    let out = bench_only(&dir);
+    let stdout = text(&out.stdout);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert!(stdout.contains("0 ran, 2 cached, 0 skipped"), "{stdout}");
+    assert_eq!(std::fs::read_to_string(&record).unwrap(), before, "the finished result is kept");
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
 fn a_failing_run_is_recorded_and_the_matrix_goes_on() {
     let dir = temp_dir("failing");
     // An all-black teacher-free... a patch larger than the views fails inside the run.
@@ -315,7 +347,7 @@ fn a_failing_run_is_recorded_and_the_matrix_goes_on() {
     std::fs::write(results.join("work/tiny__default__s0/checkpoint.bin.tmp"), "x").unwrap();
     let out = sos(&["bench", "bench.toml"], &dir);
     let stderr = text(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert_eq!(out.status.code(), Some(3), "failed runs, not bad input: {stderr}");
     assert!(stderr.contains("1 runs failed: tiny__broken__s0"), "{stderr}");
     let failed = json(&results.join("runs/tiny__broken__s0.json"));
     assert_eq!(failed["status"], "failed");
@@ -325,6 +357,10 @@ fn a_failing_run_is_recorded_and_the_matrix_goes_on() {
     assert!(!results.join("work/tiny__default__s0/checkpoint.bin.tmp").exists());
     let md = std::fs::read_to_string(results.join("report.md")).unwrap();
     assert!(md.contains("failed"), "{md}");
+    // Merged, the failure still shows in the exit code (and the merged report is written).
+    let merged = sos(&["bench", "merge", "results/all", "--out", "merged"], &dir);
+    assert_eq!(merged.status.code(), Some(3), "{}", text(&merged.stderr));
+    assert!(dir.join("merged/report.md").exists());
     std::fs::remove_dir_all(dir).ok();
 }
 
@@ -361,7 +397,7 @@ fn a_method_of_another_build_runs_its_own_train_beside_this_builds_rows() {
     let bench = std::fs::read_to_string(dir.join("bench.toml")).unwrap().replace(program, "broken.sh");
     std::fs::write(dir.join("bench.toml"), bench).unwrap();
     let out = sos(&["bench", "bench.toml", "--profile", "builds"], &dir);
-    assert_eq!(out.status.code(), Some(2));
+    assert_eq!(out.status.code(), Some(3), "a failed run: {}", text(&out.stderr));
     let failed = json(&runs.join("tiny__other__s0.json"));
     assert!(failed["error"].as_str().unwrap().contains("exited with code 7"), "{failed:#}");
     std::fs::remove_dir_all(dir).ok();

@@ -9,6 +9,8 @@
 //!   weighted standard deviation of the sample distances);
 //! - the whole view with its mask, as `sos` infers it.
 //!
+//! `VIEW_ONLY=1` times only the whole view with its mask (for a profiler).
+//!
 //! `cargo run --release --manifest-path experiments/Cargo.toml --bin view_time -- CONFIG CHECKPOINT [WIDTH HEIGHT] [REPEATS]`
 
 use std::time::Instant;
@@ -40,6 +42,15 @@ fn main() {
     let camera = view.camera.resized(width, height);
     let extractor = saliency_extractor(&session).expect("extractor");
     let inference = MaskInference::new(&session, &head, extractor.as_deref()).expect("inference");
+    // `VIEW_ONLY=1`: only the whole view with its mask, `repeats` times (for a profiler).
+    if std::env::var_os("VIEW_ONLY").is_some() {
+        for _ in 0..repeats {
+            let t = Instant::now();
+            inference.segment(&camera, &view.name).expect("mask");
+            println!("{width}x{height}: view with mask {:.3} s", t.elapsed().as_secs_f64());
+        }
+        return;
+    }
     colour_with_skipping(&session, &camera);
     for _ in 0..repeats {
         phases(&session, &head, &camera);
@@ -98,6 +109,8 @@ fn phases(session: &Session, head: &SegHead, camera: &Camera) {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     let mut seconds = [0.0f64; 7];
     let (mut candidates, mut kept, mut to_head) = (0usize, 0usize, 0usize);
+    // March steps up to each ray's termination (all of them for rays that never terminate).
+    let mut march_steps = (0usize, 0usize);
     let mut spread = WeightSpread::default();
     let mut start = 0;
     while start < rays.len() {
@@ -116,6 +129,17 @@ fn phases(session: &Session, head: &SegHead, camera: &Camera) {
         }
         candidates += r.timing.candidates;
         kept += r.timing.kept;
+        let steps = session.render_options(false).march.steps;
+        let stop_at = -session.config.train.early_stop.ln();
+        for ray in 0..r.samples.n_rays() {
+            let range = r.samples.range(ray);
+            let optical: f32 = range.clone().map(|k| r.density[k] * r.samples.delta[k]).sum();
+            march_steps.1 += steps;
+            march_steps.0 += match range.last() {
+                Some(last) if optical > stop_at => (r.samples.s[last] * steps as f32) as usize + 1,
+                _ => steps,
+            };
+        }
         let t = Instant::now();
         r.composite();
         seconds[4] += t.elapsed().as_secs_f64();
@@ -140,6 +164,7 @@ fn phases(session: &Session, head: &SegHead, camera: &Camera) {
         to_head as f64 / n
     );
     spread.print(n);
+    println!("march steps up to termination: {:.1}% of all", 100.0 * march_steps.0 as f64 / march_steps.1 as f64);
 }
 
 /// How many samples hold most of each ray's weight, and how far apart they lie.

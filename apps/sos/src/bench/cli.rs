@@ -45,7 +45,8 @@ pub struct BenchArgs {
 
 #[derive(Debug, Subcommand)]
 enum BenchAction {
-    /// Merge result folders (e.g. of sharded runs) into one folder and write its report.
+    /// Merge result folders (e.g. of sharded runs) into one folder and write its report (exit
+    /// code 3 when some of the runs failed, as for the matrix run in one go).
     Merge {
         /// Result folders.
         #[arg(required = true)]
@@ -75,7 +76,17 @@ pub fn run(args: BenchArgs, progress: bool) -> anyhow::Result<()> {
             if let Some(readme) = readme {
                 report::update_readme(&readme, &report, &out)?;
             }
-            Ok(())
+            // The merged matrix answers as one run of it would.
+            let failed: Vec<String> = record::load_all(&out)?
+                .into_iter()
+                .filter(|r| r.status == record::Status::Failed)
+                .map(|r| r.key.id)
+                .collect();
+            if failed.is_empty() {
+                Ok(())
+            } else {
+                Err(RunsFailed { ids: failed, out }.into())
+            }
         }
         Some(BenchAction::Diff { a, b }) => merge::diff(&a, &b),
         None => {
@@ -171,14 +182,26 @@ fn run_file(file_path: &std::path::Path, args: &BenchArgs, progress: bool) -> an
         println!("updated {}", readme.display());
     }
     if !tally.failed.is_empty() {
-        bail!(
-            "{} runs failed: {} (their errors are in the report and in {}/logs)",
-            tally.failed.len(),
-            tally.failed.join(", "),
-            out.display()
-        );
+        return Err(RunsFailed { ids: tally.failed, out }.into());
     }
     Ok(())
+}
+
+/// The matrix ran to its end and its report is written, but some runs failed: the command
+/// exits with [`RunsFailed::EXIT_CODE`], which a cluster wrapper can tell apart from bad input
+/// or a crash (exit code 2) and still merge after.
+#[derive(Debug, thiserror::Error)]
+#[error("{} runs failed: {} (their errors are in the report and in {}/logs)", ids.len(), ids.join(", "), out.display())]
+pub struct RunsFailed {
+    /// Ids of the failed runs.
+    pub ids: Vec<String>,
+    /// The result folder.
+    pub out: PathBuf,
+}
+
+impl RunsFailed {
+    /// The exit code of a matrix with failed runs.
+    pub const EXIT_CODE: u8 = 3;
 }
 
 /// Runs that would run (not skipped, no other run with the same config) and how many of them

@@ -19,6 +19,8 @@ use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use plotters::style::{register_font, FontStyle, Palette};
 
+use crate::commands::{write_atomic, write_atomic_bytes};
+
 /// One named set of points (x, y).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Series {
@@ -68,8 +70,9 @@ const MARKER_RADIUS: i32 = 4;
 /// A position in backend pixels (plotters' `BackendCoord`, which it does not re-export).
 type Pixel = (i32, i32);
 
-/// Writes `<stem>.svg` and `<stem>.png` (800x500 px). The extensions are appended, so a stem
-/// such as `lr_0.1` keeps its dot. The parent folder must exist. Errors name the file.
+/// Writes `<stem>.svg` and `<stem>.png` (800x500 px), each atomically (a run killed meanwhile
+/// leaves the old chart or the new one). The extensions are appended, so a stem such as
+/// `lr_0.1` keeps its dot. The parent folder must exist. Errors name the file.
 pub fn write_chart(chart: &Chart, stem: &Path) -> Result<()> {
     ensure_font()?;
 
@@ -80,7 +83,7 @@ pub fn write_chart(chart: &Chart, stem: &Path) -> Result<()> {
         draw(&root, chart).with_context(|| format!("drawing {}", svg_path.display()))?;
         root.present().with_context(|| format!("drawing {}", svg_path.display()))?;
     }
-    std::fs::write(&svg_path, svg).with_context(|| format!("writing {}", svg_path.display()))?;
+    write_atomic(&svg_path, &svg)?;
 
     let png_path = with_suffix(stem, "png");
     let (w, h) = SIZE;
@@ -90,9 +93,10 @@ pub fn write_chart(chart: &Chart, stem: &Path) -> Result<()> {
         draw(&root, chart).with_context(|| format!("drawing {}", png_path.display()))?;
         root.present().with_context(|| format!("drawing {}", png_path.display()))?;
     }
-    image::save_buffer_with_format(&png_path, &pixels, w, h, image::ExtendedColorType::Rgb8, image::ImageFormat::Png)
-        .with_context(|| format!("writing {}", png_path.display()))?;
-    Ok(())
+    let mut png = std::io::Cursor::new(Vec::new());
+    image::write_buffer_with_format(&mut png, &pixels, w, h, image::ExtendedColorType::Rgb8, image::ImageFormat::Png)
+        .with_context(|| format!("encoding {}", png_path.display()))?;
+    write_atomic_bytes(&png_path, png.get_ref())
 }
 
 /// The Pareto front of `points` for minimising x and maximising y: the indices of the points

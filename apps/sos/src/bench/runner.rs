@@ -97,13 +97,15 @@ pub fn run_all(
         let started = Instant::now();
         let done = |r: &RunRecord| r.status == Status::Done && r.hash == run.hash;
         let mut cached = false;
-        let (record, how) = if let Some(reason) = &run.skip {
-            tally.skipped += 1;
-            (RunRecord::new(run, Status::Skipped, Some(reason.clone()), None, commit), format!("skipped: {reason}"))
-        } else if let Some(r) = existing.iter().chain(&records).find(|r| r.key.id == run.key.id && done(r)) {
+        // A finished result stands even where its data or weights are missing now.
+        let (record, how) = if let Some(r) = existing.iter().chain(&records).find(|r| r.key.id == run.key.id && done(r))
+        {
             tally.cached += 1;
             cached = true;
             (r.clone(), "cached".into())
+        } else if let Some(reason) = &run.skip {
+            tally.skipped += 1;
+            (RunRecord::new(run, Status::Skipped, Some(reason.clone()), None, commit), format!("skipped: {reason}"))
         } else if let Some(r) = existing.iter().chain(&records).find(|r| done(r)) {
             // Another run of the matrix has this very config (a sweep point at the default).
             tally.cached += 1;
