@@ -300,7 +300,8 @@ pub fn load_all(dir: &Path) -> anyhow::Result<Vec<RunRecord>> {
     Ok(out)
 }
 
-/// The current commit of the checkout holding `dir`, with `+dirty` for local changes.
+/// The current commit of the checkout holding `dir`, with `+dirty` for local changes to
+/// tracked files, except those inside benchmark result folders (see [`changes_code`]).
 pub fn commit_of(dir: &Path) -> String {
     let git = |args: &[&str]| {
         std::process::Command::new("git")
@@ -310,19 +311,37 @@ pub fn commit_of(dir: &Path) -> String {
             .output()
             .ok()
             .filter(|o| o.status.success())
-            .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+            .map(|o| String::from_utf8_lossy(&o.stdout).into_owned())
     };
-    match git(&["rev-parse", "--short=12", "HEAD"]) {
-        Some(head) => {
-            let dirty = git(&["status", "--porcelain", "--untracked-files=no"]).is_some_and(|s| !s.is_empty());
-            if dirty {
-                format!("{head}+dirty")
-            } else {
-                head
-            }
-        }
-        None => "unknown".into(),
+    let (Some(head), Some(top)) = (git(&["rev-parse", "--short=12", "HEAD"]), git(&["rev-parse", "--show-toplevel"]))
+    else {
+        return "unknown".into();
+    };
+    let head = head.trim();
+    let dirty = git(&["status", "--porcelain", "--untracked-files=no"])
+        .is_some_and(|status| changes_code(Path::new(top.trim()), &status));
+    if dirty {
+        format!("{head}+dirty")
+    } else {
+        head.to_string()
     }
+}
+
+/// Whether `git status --porcelain` output (paths relative to the checkout's top `top`) lists a
+/// change outside every benchmark result folder (a folder holding `bench.json`, at any depth
+/// above the file). A benchmark rewrites its own reports as it runs, and a run folder's
+/// records may be pruned by hand: neither is a change to what the runs ran.
+pub fn changes_code(top: &Path, porcelain: &str) -> bool {
+    porcelain.lines().filter(|l| l.len() > 3).any(|line| {
+        let path = &line[3..];
+        // A rename lists `old -> new`; a path with unusual characters comes quoted.
+        let path = path.rsplit(" -> ").next().unwrap_or(path);
+        if path.starts_with('"') {
+            return true;
+        }
+        let file = top.join(path);
+        !file.ancestors().skip(1).take_while(|d| d.starts_with(top)).any(|d| d.join("bench.json").is_file())
+    })
 }
 
 /// The peak resident memory of this process so far, MiB (Linux `VmHWM`).
@@ -383,6 +402,22 @@ fn civil_from_days(z: i64) -> (i64, u32, u32) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_benchmarks_own_result_folders_do_not_make_a_checkout_dirty() {
+        let top = std::env::temp_dir().join(format!("sos-record-dirty-{}", std::process::id()));
+        let results = top.join("benchmarks/reports/quick");
+        std::fs::create_dir_all(results.join("runs")).unwrap();
+        std::fs::write(results.join("bench.json"), "{}").unwrap();
+        let report = " M benchmarks/reports/quick/report.md\n D benchmarks/reports/quick/runs/a__default__s0.json\n";
+        assert!(!changes_code(&top, report), "the benchmark's own folder");
+        assert!(!changes_code(&top, ""), "nothing changed");
+        assert!(changes_code(&top, &format!("{report} M sos-core/src/lib.rs\n")), "code changed");
+        assert!(changes_code(&top, "M  benchmarks/run_all.toml\n"), "the benchmark file is not a result");
+        assert!(changes_code(&top, "R  a.rs -> sos-core/src/b.rs\n"), "a renamed source file");
+        assert!(!changes_code(&top, "R  x.md -> benchmarks/reports/quick/x.md\n"), "renamed into the results");
+        std::fs::remove_dir_all(&top).ok();
+    }
 
     #[test]
     fn dates_follow_the_gregorian_calendar() {
