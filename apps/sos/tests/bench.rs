@@ -229,6 +229,13 @@ fn runs_that_differ_only_after_stage_one_share_it_with_the_same_result() {
     assert!(shared["outcome"]["cpu_seconds"].is_null() && source["outcome"]["cpu_seconds"].is_number());
     let joint = json(&dir.join("together/runs/tiny__joint__s0.json"));
     assert!(joint["outcome"]["stage1"].is_object(), "{joint:#}");
+    // Its stage 1 is `default`'s, so is its stage-1 curve, to the last point: measured as
+    // stage 1 ends, before stage 2 trains the field on.
+    let psnrs = |r: &serde_json::Value| -> Vec<serde_json::Value> {
+        r["outcome"]["curves"]["stage1"].as_array().unwrap().iter().map(|p| p["psnr"].clone()).collect()
+    };
+    assert_eq!(psnrs(&joint), psnrs(&source));
+    assert_eq!(psnrs(&joint).len(), 3, "{joint:#}");
     // Shards keep the runs of one stage 1 together: two shards, one seed each, share as well.
     for i in 0..2 {
         let (shard, out_dir) = (format!("{i}/2"), format!("shard{i}"));

@@ -245,6 +245,9 @@ struct CurveRecorder {
     points: usize,
     stage1_steps: usize,
     stage2_steps: usize,
+    /// Stage 2 trains the field too (joint training): the run's final evaluation no longer
+    /// shows the field stage 1 left, so stage 1's last point is measured as that stage ends.
+    joint: bool,
     stage_start: Instant,
     stage1_eval: f64,
     stage2_eval: f64,
@@ -259,6 +262,7 @@ impl CurveRecorder {
             points,
             stage1_steps: session.config.train.steps,
             stage2_steps: if stage2 { session.config.segment.steps } else { 0 },
+            joint: stage2 && session.config.segment.steps > 0 && session.config.segment.photometric_weight > 0.0,
             stage_start: Instant::now(),
             stage1_eval: 0.0,
             stage2_eval: 0.0,
@@ -278,12 +282,13 @@ impl CurveRecorder {
     }
 
     /// The final points, from the run's own evaluation (stage 1's only when `stage1_done` is
-    /// false: a shared stage 1's curve already ends with it).
+    /// false, as a shared stage 1's curve already ends with it, and stage 2 left the field as
+    /// stage 1 did).
     fn finish(&mut self, metrics: &Metrics, stage1_seconds: f64, stage2_seconds: f64, stage1_done: bool) {
         if self.points == 0 {
             return;
         }
-        if !stage1_done {
+        if !stage1_done && !self.joint {
             self.curves.stage1.push(Stage1Point {
                 step: self.stage1_steps,
                 seconds: stage1_seconds,
@@ -316,7 +321,8 @@ impl TrainObserver for CurveRecorder {
 
     fn stage1_step(&mut self, session: &Session, stats: &StepStats) -> Result<(), RunError> {
         self.console.stage1_step(session, stats)?;
-        if !self.sampled(session.step, self.stage1_steps) {
+        let last_before_joint = self.joint && self.points > 0 && session.step == self.stage1_steps;
+        if !(self.sampled(session.step, self.stage1_steps) || last_before_joint) {
             return Ok(());
         }
         let t = Instant::now();
