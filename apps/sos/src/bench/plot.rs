@@ -72,7 +72,7 @@ type Pixel = (i32, i32);
 
 /// Writes `<stem>.svg` and `<stem>.png` (800x500 px), each atomically (a run killed meanwhile
 /// leaves the old chart or the new one). The extensions are appended, so a stem such as
-/// `lr_0.1` keeps its dot. The parent folder must exist. Errors name the file.
+/// `lr_0.1` keeps its dot. The folder is made where missing. Errors name the file.
 pub fn write_chart(chart: &Chart, stem: &Path) -> Result<()> {
     ensure_font()?;
 
@@ -748,7 +748,7 @@ mod tests {
     }
 
     #[test]
-    fn stem_keeps_its_dot_and_errors_name_the_file() {
+    fn stem_keeps_its_dot_the_folder_is_made_and_errors_name_the_file() {
         let dir = temp_dir("paths");
         let chart = Chart {
             title: "lr sweep".into(),
@@ -763,8 +763,10 @@ mod tests {
         write_and_read(&chart, &dir.join("lr_0.1"));
         assert!(dir.join("lr_0.1.svg").is_file() && dir.join("lr_0.1.png").is_file());
 
-        let missing = dir.join("no-such-folder").join("chart");
-        let err = format!("{:#}", write_chart(&chart, &missing).unwrap_err());
+        write_chart(&chart, &dir.join("new-folder").join("chart")).unwrap();
+        assert!(dir.join("new-folder/chart.svg").is_file(), "the folder is made");
+        std::fs::write(dir.join("a-file"), "").unwrap();
+        let err = format!("{:#}", write_chart(&chart, &dir.join("a-file").join("chart")).unwrap_err());
         assert!(err.contains("chart.svg"), "{err}");
         std::fs::remove_dir_all(&dir).unwrap();
     }

@@ -29,7 +29,8 @@ pub fn write_atomic(path: &Path, text: &str) -> anyhow::Result<()> {
 /// [`write_atomic`] of any bytes (an encoded image).
 pub fn write_atomic_bytes(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
     if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
+        std::fs::create_dir_all(parent)
+            .with_context(|| format!("creating {} for {}", parent.display(), path.display()))?;
     }
     let mut tmp = path.as_os_str().to_owned();
     tmp.push(".tmp");
