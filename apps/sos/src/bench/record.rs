@@ -193,13 +193,7 @@ pub struct Machine {
 impl Machine {
     /// This machine (Linux `/proc`; fields stay empty elsewhere).
     pub fn here() -> Machine {
-        let cpuinfo = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
-        let cpu = cpuinfo
-            .lines()
-            .find_map(|l| {
-                l.strip_prefix("model name").and_then(|r| r.split_once(':')).map(|(_, v)| v.trim().to_string())
-            })
-            .unwrap_or_else(|| "unknown".into());
+        let cpu = cpu_model(&std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default());
         let meminfo = std::fs::read_to_string("/proc/meminfo").unwrap_or_default();
         let kib = meminfo
             .lines()
@@ -298,6 +292,21 @@ pub fn load_all(dir: &Path) -> anyhow::Result<Vec<RunRecord>> {
     }
     out.sort_by(|a, b| a.key.id.cmp(&b.key.id));
     Ok(out)
+}
+
+/// The CPU's name from `/proc/cpuinfo`: x86's `model name`, else the fields other
+/// architectures use (`Model` or `Hardware` on ARM boards, `cpu model` on MIPS, `cpu` on
+/// POWER, `uarch` on RISC-V), else `unknown` with the architecture.
+fn cpu_model(cpuinfo: &str) -> String {
+    ["model name", "Model", "Hardware", "cpu model", "cpu", "uarch"]
+        .iter()
+        .find_map(|key| {
+            cpuinfo.lines().find_map(|l| {
+                let (k, v) = l.split_once(':')?;
+                (k.trim() == *key && !v.trim().is_empty()).then(|| v.trim().to_string())
+            })
+        })
+        .unwrap_or_else(|| format!("unknown {}", std::env::consts::ARCH))
 }
 
 /// The current commit of the checkout holding `dir`, with `+dirty` for local changes to
@@ -402,6 +411,16 @@ fn civil_from_days(z: i64) -> (i64, u32, u32) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_cpu_is_named_on_x86_and_on_arm_boards() {
+        let x86 = "processor\t: 0\nvendor_id\t: AuthenticAMD\nmodel\t\t: 1\nmodel name\t: AMD EPYC 7B13\n";
+        assert_eq!(cpu_model(x86), "AMD EPYC 7B13");
+        let arm =
+            "processor\t: 0\nBogoMIPS\t: 108.00\nCPU part\t: 0xd08\n\nModel\t\t: Raspberry Pi 4 Model B Rev 1.4\n";
+        assert_eq!(cpu_model(arm), "Raspberry Pi 4 Model B Rev 1.4");
+        assert!(cpu_model("processor\t: 0\n").starts_with("unknown "));
+    }
 
     #[test]
     fn a_benchmarks_own_result_folders_do_not_make_a_checkout_dirty() {
