@@ -320,15 +320,15 @@ fn a_finished_run_stays_cached_when_its_data_goes_missing() {
         .replace("[methods.short]\nset = { \"segment.steps\" = 2 }\n", "")
         .replace("\"no/such/folder\"", &format!("{:?}", path.display().to_string()));
     std::fs::write(dir.join("bench.toml"), bench).unwrap();
-    let bench_only = |dir: &Path| sos(&["bench", "bench.toml"], dir);
-    let out = bench_only(&dir);
+    let run_bench = |dir: &Path| sos(&["bench", "bench.toml"], dir);
+    let out = run_bench(&dir);
     assert!(out.status.success(), "{}", text(&out.stderr));
     let record = dir.join("results/all/runs/missing__default__s0.json");
     assert_eq!(json(&record)["status"], "done", "the capture exists: the run happens");
     let before = std::fs::read_to_string(&record).unwrap();
 
     std::fs::remove_dir_all(dir.join("capture")).unwrap();
-    let out = bench_only(&dir);
+    let out = run_bench(&dir);
     let stdout = text(&out.stdout);
     assert!(out.status.success(), "{}", text(&out.stderr));
     assert!(stdout.contains("0 ran, 2 cached, 0 skipped"), "{stdout}");

@@ -17,6 +17,7 @@ use std::time::Instant;
 
 use rand::SeedableRng;
 use sos_core::camera::Camera;
+use sos_core::render::density_pass::stop_depth;
 use sos_core::render::rays::RayBatch;
 use sos_core::render::renderer::{render, render_inference, RenderOptions, Rendered};
 use sos_core::segment::head::SegHead;
@@ -111,6 +112,8 @@ fn phases(session: &Session, head: &SegHead, camera: &Camera) {
     let (mut candidates, mut kept, mut to_head) = (0usize, 0usize, 0usize);
     // March steps up to each ray's termination (all of them for rays that never terminate).
     let mut march_steps = (0usize, 0usize);
+    let steps = session.render_options(false).march.steps;
+    let stop_at = stop_depth(session.config.train.early_stop);
     let mut spread = WeightSpread::default();
     let mut start = 0;
     while start < rays.len() {
@@ -129,8 +132,6 @@ fn phases(session: &Session, head: &SegHead, camera: &Camera) {
         }
         candidates += r.timing.candidates;
         kept += r.timing.kept;
-        let steps = session.render_options(false).march.steps;
-        let stop_at = -session.config.train.early_stop.ln();
         for ray in 0..r.samples.n_rays() {
             let range = r.samples.range(ray);
             let optical: f32 = range.clone().map(|k| r.density[k] * r.samples.delta[k]).sum();

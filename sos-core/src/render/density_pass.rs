@@ -175,7 +175,7 @@ pub fn density_pass(
 
 /// Optical depth past which a ray terminates: where its transmittance falls below `early_stop`
 /// (0: never).
-fn stop_depth(early_stop: f32) -> f32 {
+pub fn stop_depth(early_stop: f32) -> f32 {
     if early_stop > 0.0 {
         -early_stop.ln()
     } else {

@@ -71,17 +71,12 @@ enum BenchAction {
 pub fn run(args: BenchArgs, progress: bool) -> anyhow::Result<()> {
     match args.action {
         Some(BenchAction::Merge { dirs, out, readme }) => {
-            let report = merge::merge(&dirs, &out)?;
+            let (report, failed) = merge::merge(&dirs, &out)?;
             println!("merged {} folders into {}", dirs.len(), out.join("report.md").display());
             if let Some(readme) = readme {
                 report::update_readme(&readme, &report, &out)?;
             }
             // The merged matrix answers as one run of it would.
-            let failed: Vec<String> = record::load_all(&out)?
-                .into_iter()
-                .filter(|r| r.status == record::Status::Failed)
-                .map(|r| r.key.id)
-                .collect();
             if failed.is_empty() {
                 Ok(())
             } else {

@@ -262,7 +262,7 @@ impl CurveRecorder {
             points,
             stage1_steps: session.config.train.steps,
             stage2_steps: if stage2 { session.config.segment.steps } else { 0 },
-            joint: stage2 && session.config.segment.steps > 0 && session.config.segment.photometric_weight > 0.0,
+            joint: stage2 && session.config.segment.photometric_weight > 0.0,
             stage_start: Instant::now(),
             stage1_eval: 0.0,
             stage2_eval: 0.0,

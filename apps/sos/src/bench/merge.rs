@@ -6,13 +6,14 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 
-use super::record::{load_all, RunRecord};
+use super::record::{load_all, RunRecord, Status};
 use super::report;
 use super::runner::BenchMeta;
 
-/// Merges the runs of `dirs` into `out` and writes its report. A run present in two folders
-/// must have one config hash; the first folder's copy is kept.
-pub fn merge(dirs: &[PathBuf], out: &Path) -> anyhow::Result<report::Report> {
+/// Merges the runs of `dirs` into `out` and writes its report; returns it with the ids of the
+/// failed runs. A run present in two folders must have one config hash; the first folder's
+/// copy is kept.
+pub fn merge(dirs: &[PathBuf], out: &Path) -> anyhow::Result<(report::Report, Vec<String>)> {
     let Some(first) = dirs.first() else {
         bail!("`sos bench merge` needs at least one result folder");
     };
@@ -61,7 +62,8 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> anyhow::Result<report::Report> {
     if records.len() < meta.matrix_runs {
         eprintln!("note: {} of the matrix's {} runs are present", records.len(), meta.matrix_runs);
     }
-    report::write(out, &records, &meta)
+    let failed = records.iter().filter(|r| r.status == Status::Failed).map(|r| r.key.id.clone()).collect();
+    Ok((report::write(out, &records, &meta)?, failed))
 }
 
 /// Compares the runs of two result folders: the same runs, statuses, config hashes and
