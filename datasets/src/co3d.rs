@@ -140,8 +140,9 @@ pub struct SequenceAnnotation {
     pub viewpoint_quality_score: Option<f64>,
 }
 
-/// Largest accepted decompressed annotation file (a gzip bomb stops here).
-const MAX_JSON: u64 = 4 << 30;
+/// Largest accepted decompressed annotation file (a gzip bomb stops here): several times
+/// the largest CO3D category's frame annotations.
+const MAX_JSON: u64 = 1 << 30;
 
 /// Reads a gzip-compressed JSON file into `T`.
 pub fn read_jgz<T: serde::de::DeserializeOwned>(path: &Path, hint: &str) -> Result<T, DatasetError> {
@@ -150,13 +151,28 @@ pub fn read_jgz<T: serde::de::DeserializeOwned>(path: &Path, hint: &str) -> Resu
 
 /// Parses gzip-compressed JSON bytes (read from `path`, which errors name) into `T`.
 pub fn parse_jgz<T: serde::de::DeserializeOwned>(path: &Path, bytes: &[u8]) -> Result<T, DatasetError> {
-    let mut text = Vec::new();
-    flate2::read::GzDecoder::new(bytes)
-        .take(MAX_JSON)
-        .read_to_end(&mut text)
-        .map_err(|e| invalid(path, format!("not a valid gzip file ({e}); re-download or re-compress it with gzip")))?;
-    serde_json::from_slice(&text)
-        .map_err(|e| invalid(path, format!("malformed annotation JSON ({e}); re-download the annotations")))
+    parse_jgz_within(path, bytes, MAX_JSON)
+}
+
+/// [`parse_jgz`] with at most `max_json` bytes of decompressed text.
+fn parse_jgz_within<T: serde::de::DeserializeOwned>(
+    path: &Path,
+    bytes: &[u8],
+    max_json: u64,
+) -> Result<T, DatasetError> {
+    // Parsed as it is decompressed: no buffer of the whole text.
+    let mut json = std::io::BufReader::new(flate2::read::GzDecoder::new(bytes).take(max_json));
+    let parsed = serde_json::from_reader(&mut json);
+    if json.get_ref().limit() == 0 {
+        return Err(invalid(
+            path,
+            format!("decompresses to more than {max_json} bytes of JSON; not an annotation file"),
+        ));
+    }
+    parsed.map_err(|e| {
+        let what = if e.is_io() { "not a valid gzip file" } else { "malformed annotation JSON" };
+        invalid(path, format!("{what} ({e}); re-download the annotations (or re-compress them with gzip)"))
+    })
 }
 
 /// Writes `value` as gzip-compressed JSON.
@@ -346,4 +362,34 @@ pub fn load_co3d(cfg: &Co3dConfig, root: &Path) -> Result<Scene, DatasetError> {
     let (train, test) = hold_out_views(root, views.len(), cfg.hold_out_every)?;
     let extent = extent_of(&views, &train, cfg.aabb);
     Ok(orbit_scene(sequence, views, train, test, extent, cfg.near))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Write;
+
+    fn gzip(text: &[u8]) -> Vec<u8> {
+        let mut enc = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+        enc.write_all(text).unwrap();
+        enc.finish().unwrap()
+    }
+
+    #[test]
+    fn annotations_that_decompress_past_the_limit_are_refused_without_a_buffer_of_them() {
+        let path = Path::new("frame_annotations.jgz");
+        let seqs = br#"[{"sequence_name": "a", "category": "c"}]"#;
+        let ok: Vec<SequenceAnnotation> = parse_jgz_within(path, &gzip(seqs), 1024).unwrap();
+        assert_eq!(ok[0].sequence_name, "a");
+        // Whitespace compresses a thousandfold: a bomb of it stops at the limit, named.
+        let mut bomb = vec![b' '; 4096];
+        bomb.extend_from_slice(seqs);
+        let err = parse_jgz_within::<Vec<SequenceAnnotation>>(path, &gzip(&bomb), 1024).unwrap_err().to_string();
+        assert!(err.contains("more than 1024 bytes") && err.contains("frame_annotations.jgz"), "{err}");
+        // Not gzip at all, and gzip of something that is not JSON.
+        let err = parse_jgz_within::<Vec<SequenceAnnotation>>(path, b"plain text", 1024).unwrap_err().to_string();
+        assert!(err.contains("not a valid gzip file"), "{err}");
+        let err = parse_jgz_within::<Vec<SequenceAnnotation>>(path, &gzip(b"[{]"), 1024).unwrap_err().to_string();
+        assert!(err.contains("malformed annotation JSON"), "{err}");
+    }
 }

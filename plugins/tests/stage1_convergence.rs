@@ -50,6 +50,21 @@ fn stage_one_stops_three_windows_after_full_detail_and_stays_stopped() {
 }
 
 #[test]
+fn a_checkpoint_cannot_stretch_stage_one_beyond_the_configured_steps() {
+    // A checkpoint is input: one that claims its stage levelled off at step 10^15 would
+    // otherwise set the stage's length to that and train for ever.
+    let mut s = stage_one(false, 1e3, "converge-claim");
+    s.converged_at = Some(1_000_000_000_000_000);
+    s.save_checkpoint().unwrap();
+    let mut resumed = tiny_session("voxel-grid", "object-centric", "", STEPS, "converge-claim-resumed");
+    resumed.run_dir = s.run_dir.clone();
+    resumed.load_checkpoint(None).unwrap();
+    assert_eq!(resumed.config.train.steps, STEPS);
+    train_photometric(&mut resumed).unwrap();
+    assert_eq!(resumed.step, STEPS);
+}
+
+#[test]
 fn stage_one_runs_every_step_without_the_switch_or_while_it_improves() {
     let off = stage_one(false, 1e3, "converge-off");
     assert_eq!((off.step, off.converged_at), (STEPS, None));

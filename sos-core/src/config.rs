@@ -628,8 +628,9 @@ impl RunConfig {
         if !(1..=MAX_CHUNK).contains(&self.render.chunk) {
             return Err(invalid("render.chunk", &format!("must be in 1..={MAX_CHUNK}")));
         }
-        if self.name.is_empty() || self.name.contains(['/', '\\']) {
-            return Err(invalid("name", "must be a non-empty file name without slashes"));
+        // `.` and `..` would put the run's files into `output_dir` itself or its parent.
+        if self.name.is_empty() || self.name.contains(['/', '\\']) || self.name == "." || self.name == ".." {
+            return Err(invalid("name", "must be a non-empty file name without slashes, not `.` or `..`"));
         }
         Ok(())
     }

@@ -140,6 +140,16 @@ pub enum RunError {
     /// A plugin could not be built.
     #[error(transparent)]
     Build(#[from] BuildError),
+    /// The plugin of a config file's section could not be built.
+    #[error("{config}: [{section}]")]
+    Plugin {
+        /// The config file (or its folder).
+        config: PathBuf,
+        /// The config section, e.g. `field`.
+        section: &'static str,
+        /// Why.
+        source: BuildError,
+    },
     /// Reading or writing a file failed.
     #[error(transparent)]
     Io(#[from] IoError),

@@ -68,6 +68,45 @@ impl SceneExtent {
     }
 }
 
+impl SceneExtent {
+    /// Why no field could be fitted in this extent, if none could: non-finite numbers (e.g.
+    /// depth bounds overflowing `f32`), an empty box, depths out of order, or a radius, focal
+    /// length or image size that is not positive.
+    pub fn problem(&self) -> Option<String> {
+        let finite = |vs: &[f32]| vs.iter().all(|v| v.is_finite());
+        match *self {
+            SceneExtent::Bounded { min, max } => {
+                if !finite(&min) || !finite(&max) {
+                    Some(format!("its box {self} is not finite"))
+                } else if (0..3).any(|a| max[a] <= min[a]) {
+                    Some(format!("its box {self} is empty along an axis"))
+                } else {
+                    None
+                }
+            }
+            SceneExtent::ForwardFacing { near, far, focal, width, height } => {
+                if !finite(&[near, far, focal, width, height]) {
+                    Some(format!("{self} is not finite (bounds too far apart for 32-bit floats?)"))
+                } else if !(near > 0.0 && far > near) {
+                    Some(format!("{self}: depths must satisfy 0 < near < far"))
+                } else if !(focal > 0.0 && width > 0.0 && height > 0.0) {
+                    Some(format!("{self}: focal length {focal} and size {width}x{height} must be positive"))
+                } else {
+                    None
+                }
+            }
+            SceneExtent::Unbounded { center, radius } => {
+                let usable_radius = radius.is_finite() && radius > 0.0;
+                if !finite(&center) || !usable_radius {
+                    Some(format!("{self}: needs a finite centre and a positive radius"))
+                } else {
+                    None
+                }
+            }
+        }
+    }
+}
+
 impl std::fmt::Display for SceneExtent {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let v = |p: Vec3| format!("[{:.3}, {:.3}, {:.3}]", p[0], p[1], p[2]);
@@ -113,6 +152,12 @@ impl Scene {
         }
         if self.train.is_empty() {
             return Err("scene has no training views".into());
+        }
+        if let Some(why) = self.extent.problem() {
+            return Err(format!("the scene's extent: {why}; check its bounds (or set `aabb`)"));
+        }
+        if !(self.near.is_finite() && self.near >= 0.0) {
+            return Err(format!("the scene's `near` distance {} must be a finite number of at least 0", self.near));
         }
         for &i in self.train.iter().chain(&self.test) {
             if i >= self.views.len() {
@@ -197,4 +242,33 @@ pub fn solve3(a: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
         x[k] = det(&m) / d;
     }
     Some(x)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testing::scene::blank_scene;
+
+    #[test]
+    fn an_extent_no_field_fits_in_is_refused_by_validation() {
+        assert_eq!(blank_scene(2, 4, 4).validate(), Ok(()));
+        let ff = |near: f32, far: f32| SceneExtent::ForwardFacing { near, far, focal: 10.0, width: 4.0, height: 4.0 };
+        for (extent, says) in [
+            // LLFF bounds of 1e-30 and 1e10 scaled into f32: an infinite far plane.
+            (ff(1.2, f32::INFINITY), "not finite"),
+            (ff(2.0, 1.0), "0 < near < far"),
+            (SceneExtent::Bounded { min: [f32::NEG_INFINITY, -1.0, -1.0], max: [1.0; 3] }, "not finite"),
+            (SceneExtent::Bounded { min: [-1.0, 0.5, -1.0], max: [1.0, 0.5, 1.0] }, "empty along an axis"),
+            (SceneExtent::Unbounded { center: [0.0; 3], radius: 0.0 }, "positive radius"),
+            (SceneExtent::Unbounded { center: [f32::NAN, 0.0, 0.0], radius: 1.0 }, "positive radius"),
+        ] {
+            let mut scene = blank_scene(2, 4, 4);
+            scene.extent = extent;
+            let err = scene.validate().expect_err("a degenerate extent passes");
+            assert!(err.contains(says) && err.contains("extent"), "{err}");
+        }
+        let mut scene = blank_scene(2, 4, 4);
+        scene.near = f32::NAN;
+        assert!(scene.validate().unwrap_err().contains("near"));
+    }
 }

@@ -280,6 +280,11 @@ fn a_profile_times_its_view_at_the_size_it_names() {
     let out = sos(&["bench", "bench.toml", "--profile", "bad"], &dir);
     assert_eq!(out.status.code(), Some(2));
     assert!(text(&out.stderr).contains("profile `bad`, `view_size` is 0x36"), "{}", text(&out.stderr));
+    // So is a learning curve of a quadrillion points (a check on every step for ever).
+    write_bench(&dir, "[profiles.bad]\ncurve_points = 1000000000000000\n");
+    let out = sos(&["bench", "bench.toml", "--profile", "bad", "--list"], &dir);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(text(&out.stderr).contains("profile `bad`, `curve_points` is 1000000000000000"), "{}", text(&out.stderr));
     std::fs::remove_dir_all(dir).ok();
 }
 

@@ -192,6 +192,13 @@ fn counts_beyond_any_machine_are_refused_by_key() {
         config: toml::to_string(&replaced(&base, "field.resolution", grid)).unwrap(),
         key: "field.resolution".into(),
     });
+    // Checked by the field plugin when it is built, after the scene has loaded: named too.
+    let flat = toml::Value::try_from([1, 64, 64]).unwrap();
+    cases.push(Case {
+        label: "a grid one vertex thick".into(),
+        config: toml::to_string(&replaced(&base, "field.resolution", flat)).unwrap(),
+        key: "field.resolution".into(),
+    });
     let many = replaced(&base, "train.rays_per_step", toml::Value::Integer(1 << 20));
     cases.push(Case {
         label: "a million rays of 4096 samples".into(),
@@ -239,6 +246,18 @@ fn run_folders_in_use_or_unwritable_are_refused_before_training() {
     let stderr = text(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{stderr}");
     assert!(stderr.contains("not-a-folder"), "{stderr}");
+
+    // A run named `..` (or `.`) would write its checkpoint and masks beside `output_dir`.
+    base.insert("output_dir".into(), "runs".into());
+    for name in ["..", "."] {
+        base.insert("name".into(), name.into());
+        std::fs::write(dir.join("dots.toml"), toml::to_string(&base).unwrap()).unwrap();
+        let out = sos(&["train", "dots.toml"], &dir);
+        let stderr = text(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{stderr}");
+        assert!(stderr.contains("dots.toml") && stderr.contains("name"), "{stderr}");
+    }
+    assert!(!dir.join("checkpoint.bin").exists() && !dir.join("runs/checkpoint.bin").exists());
     std::fs::remove_dir_all(dir).ok();
 }
 

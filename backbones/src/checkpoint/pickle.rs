@@ -107,9 +107,64 @@ impl Value {
             Value::List(l) => format!("list[{}]", l.borrow().len()),
             Value::Dict(d) => format!("dict[{}]", d.borrow().len()),
             Value::Global(g) => format!("{}.{}", g.0, g.1),
-            Value::Call(c) => format!("{}(...)", c.borrow().callable.describe()),
+            // Not the callable's own description: calls can nest through their callables.
+            Value::Call(c) => match c.borrow().callable.global() {
+                Some((module, name)) => format!("{module}.{name}(...)"),
+                None => "call(...)".into(),
+            },
             Value::Persistent(_) => "persistent id".into(),
         }
+    }
+}
+
+/// A pickle nests values as deep as it likes (a 300 KB file can nest a tuple 300,000 deep),
+/// and the compiler's drop would recurse once per level until the stack overflows. This one
+/// takes the children of a container it owns alone out into a list and drops them from
+/// there, so dropping any value uses the same small stack.
+impl Drop for Value {
+    fn drop(&mut self) {
+        let mut pending = Vec::new();
+        take_children(self, &mut pending);
+        while let Some(mut v) = pending.pop() {
+            take_children(&mut v, &mut pending);
+        }
+    }
+}
+
+/// Moves the children of `v` into `out` when no other value shares its container.
+fn take_children(v: &mut Value, out: &mut Vec<Value>) {
+    match v {
+        Value::Tuple(t) => {
+            if let Some(items) = Rc::get_mut(t) {
+                out.append(items);
+            }
+        }
+        Value::List(l) => {
+            if let Some(items) = Rc::get_mut(l) {
+                out.append(items.get_mut());
+            }
+        }
+        Value::Dict(d) => {
+            if let Some(pairs) = Rc::get_mut(d) {
+                for (k, v) in pairs.get_mut().drain(..) {
+                    out.extend([k, v]);
+                }
+            }
+        }
+        Value::Call(c) => {
+            if let Some(call) = Rc::get_mut(c) {
+                let call = call.get_mut();
+                out.push(std::mem::replace(&mut call.callable, Value::None));
+                out.push(std::mem::replace(&mut call.args, Value::None));
+                out.extend(call.state.take());
+            }
+        }
+        Value::Persistent(p) => {
+            if let Some(inner) = Rc::get_mut(p) {
+                out.push(std::mem::replace(inner, Value::None));
+            }
+        }
+        _ => {}
     }
 }
 
@@ -598,6 +653,33 @@ mod tests {
         ] {
             assert!(load(bad).is_err(), "{bad:?} should fail");
         }
+    }
+
+    #[test]
+    fn values_nested_300000_deep_load_and_drop_on_a_small_stack() {
+        const DEPTH: usize = 300_000;
+        // `prefix` DEPTH times, the innermost value, `suffix` DEPTH times.
+        let run = |prefix: &[u8], inner: &[u8], suffix: &[u8]| {
+            let mut bytes = b"\x80\x02".to_vec();
+            bytes.extend(prefix.repeat(DEPTH));
+            bytes.extend_from_slice(inner);
+            bytes.extend(suffix.repeat(DEPTH));
+            bytes.push(b'.');
+            // 256 KiB of stack: the compiler's recursive drop needs megabytes for this depth.
+            std::thread::Builder::new()
+                .stack_size(256 * 1024)
+                .spawn(move || load(&bytes).map(|v| v.describe()))
+                .unwrap()
+                .join()
+                .expect("the nested value dropped without overflowing the stack")
+                .unwrap()
+        };
+        assert_eq!(run(b"", b")", b"\x85"), "tuple[1]"); // TUPLE1 of TUPLE1 of ...
+        assert_eq!(run(b"", b")", b"Q"), "persistent id"); // BINPERSID of ...
+        assert_eq!(run(b"(", b"]", b"l"), "list[1]"); // MARK ... LIST
+        assert_eq!(run(b"(N", b"}", b"d"), "dict[1]"); // MARK None ... DICT
+        assert_eq!(run(b"cx\ny\n(", b")", b"tR"), "x.y(...)"); // GLOBAL MARK ... TUPLE REDUCE
+        assert_eq!(run(b"", b"cx\ny\n", b")R"), "call(...)"); // calls of calls of ... x.y
     }
 
     #[test]

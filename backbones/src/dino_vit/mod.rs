@@ -90,7 +90,10 @@ fn resource(message: String) -> BuildError {
 fn download_hint(arch: Arch) -> String {
     let shown = if arch == Arch::Auto { Arch::Vits16 } else { arch };
     format!(
-        "download {} (the official DINO {} backbone weights, listed at {}) from {}; for the other          architectures the files are dino_deitsmall16_pretrain.pth (vits16, the reference's),          dino_deitsmall8_pretrain.pth (vits8), dino_vitbase16_pretrain.pth (vitb16) and          dino_vitbase8_pretrain.pth (vitb8), each at https://dl.fbaipublicfiles.com/dino/<name>/<name>.pth",
+        "download {} (the official DINO {} backbone weights, listed at {}) from {}; for the other \
+         architectures the files are dino_deitsmall16_pretrain.pth (vits16, the reference's), \
+         dino_deitsmall8_pretrain.pth (vits8), dino_vitbase16_pretrain.pth (vitb16) and \
+         dino_vitbase8_pretrain.pth (vitb8), each at https://dl.fbaipublicfiles.com/dino/<name>/<name>.pth",
         shown.official_file(),
         shown.name(),
         arch::DINO_README,

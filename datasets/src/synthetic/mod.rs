@@ -173,6 +173,10 @@ impl Default for SyntheticConfig {
     }
 }
 
+/// Most pixels of all views together: 16 GiB of images, more than a real capture (LLFF's
+/// full-size flower is 0.4 G pixels).
+const MAX_SCENE_PIXELS: u64 = 1_000_000_000;
+
 impl SyntheticConfig {
     /// Checks the values; the error names the key and the allowed range.
     pub fn check(&self) -> Result<(), String> {
@@ -181,6 +185,20 @@ impl SyntheticConfig {
         }
         if !(2..=10_000).contains(&self.views) {
             return Err(format!("key `views`: must be within 2..=10000, got {}", self.views));
+        }
+        // The views are held in memory as f32 RGB with a mask: 16 bytes a pixel.
+        let pixels = self.views as u64 * u64::from(self.width) * u64::from(self.height);
+        if pixels > MAX_SCENE_PIXELS {
+            return Err(format!(
+                "keys `views`, `width`, `height`: {} views of {}x{} are {:.1} G pixels ({:.0} GiB held in memory); \
+                 at most {} G pixels",
+                self.views,
+                self.width,
+                self.height,
+                pixels as f64 / 1e9,
+                (pixels * 16) as f64 / (1u64 << 30) as f64,
+                MAX_SCENE_PIXELS / 1_000_000_000
+            ));
         }
         if self.render_path_views > 10_000 {
             return Err(format!("key `render_path_views`: must be at most 10000, got {}", self.render_path_views));
@@ -413,6 +431,11 @@ mod tests {
         let err = boxed.open(Path::new(".")).unwrap_err().to_string();
         assert!(err.contains("views"), "{err}");
         assert!(sos_core::registry::find::<dyn DatasetConfig>("synthetic").is_some());
+        // Each size within its range, all of them together more than any machine holds.
+        let huge: Box<dyn DatasetConfig> =
+            toml::from_str("kind = \"synthetic\"\nviews = 10000\nwidth = 8192\nheight = 8192").unwrap();
+        let err = huge.open(Path::new(".")).unwrap_err().to_string();
+        assert!(err.contains("671.1 G pixels") && err.contains("`views`"), "{err}");
     }
 
     #[test]

@@ -382,6 +382,10 @@ impl RadianceField for VoxelGridField {
                 ),
             });
         }
+        // The same bounds as the config's `resolution`: a checkpoint is input too.
+        if res.iter().any(|r| !(2..=1024).contains(r)) {
+            return Err(malformed(format!("resolution {res:?}: each entry must be in 2..=1024")));
+        }
         let values = state::values(kind, body, res[0] * res[1] * res[2] * channels)?;
         self.grow_to(res);
         self.grid.data.copy_from_slice(&values);
@@ -709,5 +713,22 @@ mod tests {
         g.load_state(&bytes).unwrap();
         assert_eq!(g.grid.data, f.grid.data);
         assert!(matches!(g.load_state(&bytes[..bytes.len() - 3]), Err(sos_core::error::StateError::Truncated { .. })));
+    }
+
+    #[test]
+    fn a_state_with_an_impossible_resolution_is_refused_not_indexed() {
+        let mut f = field();
+        let channels = f.grid.channels;
+        // 2^32 per axis wraps to a count of 0 in the product; 1 and 0 leave no cell to interpolate.
+        for res in [[1u64, 1, 1], [0, 0, 0], [1 << 32, 1 << 32, 1], [2000, 2, 2]] {
+            let header = serde_json::json!({ "res": res, "channels": channels, "next_growth": 0 });
+            let bytes = state::write(&header, &[&[]]);
+            let err = f.load_state(&bytes).expect_err("an impossible resolution loads");
+            assert!(
+                matches!(err, sos_core::error::StateError::Malformed { .. }),
+                "{res:?} gave {err:?}, not a malformed-state error"
+            );
+        }
+        assert_eq!(f.resolution(), field().resolution(), "a refused state leaves the grid as it was");
     }
 }

@@ -47,8 +47,15 @@ impl SparseAdam {
             });
         }
         let step = header["step"].as_u64().ok_or_else(|| malformed("optimizer state without a step"))?;
-        let beta =
-            |k: &str| header[k].as_f64().map(|b| b as f32).ok_or_else(|| malformed("optimizer state without betas"));
+        // A decay of 1 or more divides by zero in the bias correction: every value turns NaN.
+        let beta = |k: &str| {
+            let b = header[k].as_f64().ok_or_else(|| malformed("optimizer state without betas"))?;
+            if (0.0..1.0).contains(&b) {
+                Ok(b as f32)
+            } else {
+                Err(malformed("optimizer betas must be in [0, 1)"))
+            }
+        };
         let values = sos_core::plugin::state::values(kind, body, 2 * len)?;
         let (m, v) = values.split_at(len);
         self.m.copy_from_slice(m);
@@ -123,5 +130,14 @@ mod tests {
         }
         assert_eq!(pa, pb);
         assert!(SparseAdam::new(3, 0.9, 0.99).load_bytes("test", &a.to_bytes()).is_err());
+    }
+
+    #[test]
+    fn a_state_whose_decay_would_turn_every_value_nan_is_refused() {
+        for (beta1, beta2) in [(1.0, 0.99), (0.9, 1.0), (-0.1, 0.99), (0.9, 7.0)] {
+            let bytes = SparseAdam::new(4, beta1, beta2).to_bytes();
+            let err = SparseAdam::new(4, 0.9, 0.99).load_bytes("test", &bytes).expect_err("bad decays load");
+            assert!(err.to_string().contains("[0, 1)"), "{err}");
+        }
     }
 }

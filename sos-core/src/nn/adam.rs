@@ -45,6 +45,30 @@ impl Adam {
         Self { lr, beta1, beta2, eps, t: 0, m: Vec::new(), v: Vec::new() }
     }
 
+    /// Why this state cannot step parameters of the given lengths, if it cannot: decays
+    /// outside `[0, 1)`, a learning rate or `eps` that is not a positive number, or moments
+    /// kept for other parameters (a deserialised optimiser is input like any other).
+    pub fn state_error(&self, param_lens: &[usize]) -> Option<String> {
+        if !((0.0..1.0).contains(&self.beta1) && (0.0..1.0).contains(&self.beta2)) {
+            return Some(format!("Adam decays {} and {} must be in [0, 1)", self.beta1, self.beta2));
+        }
+        if !(self.lr > 0.0 && self.lr.is_finite() && self.eps > 0.0 && self.eps.is_finite()) {
+            return Some(format!("Adam's learning rate {} and eps {} must be positive numbers", self.lr, self.eps));
+        }
+        let fresh = self.m.is_empty() && self.v.is_empty();
+        let matches = |moments: &[Vec<f32>]| {
+            moments.len() == param_lens.len() && moments.iter().zip(param_lens).all(|(m, &n)| m.len() == n)
+        };
+        let consistent = matches(&self.m) && matches(&self.v);
+        if !fresh && !consistent {
+            return Some(format!("Adam holds moments for other parameters than the network's {}", param_lens.len()));
+        }
+        if self.m.iter().chain(&self.v).flatten().any(|x| !x.is_finite()) {
+            return Some("Adam's moments hold a non-finite value".into());
+        }
+        None
+    }
+
     /// One update of every parameter from its accumulated gradient, with learning rate
     /// `lr · lr_factor` (for schedules); the gradients are zeroed in the same pass.
     ///

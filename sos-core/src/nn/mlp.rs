@@ -103,6 +103,38 @@ impl Mlp {
         self.layers.last().expect("Mlp has layers").out_dim
     }
 
+    /// Why this network cannot run, if it cannot: no layers, a weight or bias whose length
+    /// does not match its layer's widths, or a layer whose input is not the previous output
+    /// (a deserialised network is input like any other).
+    pub fn shape_error(&self) -> Option<String> {
+        if self.layers.is_empty() {
+            return Some("the network has no layers".into());
+        }
+        for (i, l) in self.layers.iter().enumerate() {
+            if l.in_dim == 0 || l.out_dim == 0 {
+                return Some(format!("layer {i} has a zero width ({} -> {})", l.in_dim, l.out_dim));
+            }
+            if l.in_dim.checked_mul(l.out_dim) != Some(l.weight.len()) || l.bias.len() != l.out_dim {
+                return Some(format!(
+                    "layer {i} maps {} to {} but holds {} weights and {} biases",
+                    l.in_dim,
+                    l.out_dim,
+                    l.weight.len(),
+                    l.bias.len()
+                ));
+            }
+            if i > 0 && self.layers[i - 1].out_dim != l.in_dim {
+                return Some(format!(
+                    "layer {i} takes {} inputs but layer {} gives {}",
+                    l.in_dim,
+                    i - 1,
+                    self.layers[i - 1].out_dim
+                ));
+            }
+        }
+        None
+    }
+
     /// Number of trainable scalars.
     pub fn num_parameters(&self) -> usize {
         self.layers.iter().map(Linear::num_parameters).sum()

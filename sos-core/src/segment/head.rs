@@ -75,6 +75,63 @@ impl SegHead {
 
     /// Restores a head written by [`SegHead::to_bytes`].
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, String> {
-        serde_json::from_slice(bytes).map_err(|e| format!("segmentation head: {e}"))
+        let head: SegHead = serde_json::from_slice(bytes).map_err(|e| format!("segmentation head: {e}"))?;
+        if let Some(why) = head.mlp.shape_error() {
+            return Err(format!("segmentation head: {why}"));
+        }
+        let lens: Vec<usize> = head.mlp.layers.iter().flat_map(|l| [l.weight.len(), l.bias.len()]).collect();
+        if let Some(why) = head.adam.state_error(&lens) {
+            return Err(format!("segmentation head: {why}"));
+        }
+        Ok(head)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn head() -> SegHead {
+        SegHead::new(&HeadConfig { hidden: vec![5], outputs: 2 }, 4, 1e-3, 1)
+    }
+
+    /// The head's JSON with `edit` applied to it.
+    fn edited(edit: impl FnOnce(&mut serde_json::Value)) -> Vec<u8> {
+        let mut json: serde_json::Value = serde_json::from_slice(&head().to_bytes()).unwrap();
+        edit(&mut json);
+        serde_json::to_vec(&json).unwrap()
+    }
+
+    #[test]
+    fn a_saved_head_loads_back() {
+        let h = head();
+        let back = SegHead::from_bytes(&h.to_bytes()).unwrap();
+        assert_eq!(back.mlp.layers.len(), 2);
+        assert_eq!(back.infer(&[0.1, 0.2, 0.3, 0.4], 1), h.infer(&[0.1, 0.2, 0.3, 0.4], 1));
+    }
+
+    #[test]
+    fn a_head_that_cannot_run_is_refused_when_read_not_when_used() {
+        type Edit = Box<dyn FnOnce(&mut serde_json::Value)>;
+        let cases: [(&str, Edit); 6] = [
+            ("no layers", Box::new(|j| j["mlp"]["layers"] = serde_json::json!([]))),
+            ("holds", Box::new(|j| j["mlp"]["layers"][0]["weight"]["value"] = serde_json::json!([0.5]))),
+            ("holds", Box::new(|j| j["mlp"]["layers"][1]["bias"]["value"] = serde_json::json!([]))),
+            ("zero width", Box::new(|j| j["mlp"]["layers"][0]["out_dim"] = serde_json::json!(0))),
+            ("decays", Box::new(|j| j["adam"]["beta1"] = serde_json::json!(1.0))),
+            ("other parameters", Box::new(|j| j["adam"]["m"] = serde_json::json!([[0.0]]))),
+        ];
+        for (want, edit) in cases {
+            let err = SegHead::from_bytes(&edited(edit)).expect_err("a broken head loads");
+            assert!(err.contains(want), "`{err}` does not say `{want}`");
+        }
+        // Widths that do not chain: layer 1 takes 5 inputs; give layer 0 three outputs.
+        let bytes = edited(|j| {
+            j["mlp"]["layers"][0]["out_dim"] = serde_json::json!(3);
+            j["mlp"]["layers"][0]["weight"]["value"] = serde_json::json!(vec![0.0; 12]);
+            j["mlp"]["layers"][0]["bias"]["value"] = serde_json::json!(vec![0.0; 3]);
+        });
+        let err = SegHead::from_bytes(&bytes).expect_err("unchained layers load");
+        assert!(err.contains("takes 5 inputs but layer 0 gives 3"), "{err}");
     }
 }

@@ -623,7 +623,7 @@ pub fn saliency_extractor(session: &Session) -> Result<Option<Box<dyn FeatureExt
 
 fn no_saliency(session: &Session, why: &str) -> RunError {
     RunError::Config(ConfigError::Invalid {
-        path: session.config_dir.clone(),
+        path: session.config_source.clone(),
         key: "masks.foreground".into(),
         reason: format!(
             "`saliency` needs a teacher saliency map but {why}; set `foreground = \"focus\"` or choose an \

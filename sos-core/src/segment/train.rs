@@ -124,7 +124,7 @@ impl Segmenter {
         let sampler = PatchSampler::new(seg.patch_size, seg.stride, seg.offset_grid, cfg.seed.wrapping_add(PATCH_SEED));
         sampler.check(&session.scene).map_err(|message| {
             RunError::Config(crate::error::ConfigError::Invalid {
-                path: session.config_dir.clone(),
+                path: session.config_source.clone(),
                 key: "segment.patch_size".into(),
                 reason: message,
             })

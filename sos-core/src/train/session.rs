@@ -30,6 +30,9 @@ pub struct Session {
     pub config: RunConfig,
     /// Folder of the config file (relative paths resolve against it).
     pub config_dir: PathBuf,
+    /// The config file, or its folder for a session built from a parsed config: what errors
+    /// about the config's keys name.
+    pub config_source: PathBuf,
     /// `<output_dir>/<name>/`.
     pub run_dir: PathBuf,
     /// The loaded scene.
@@ -89,7 +92,11 @@ impl Session {
             .map_err(in_config)?;
         let mut derived = derive_settings(&mut config, config_dir, &scene);
         crate::train::memory_check::check(&config, source)?;
-        let field = config.field.build(&scene.extent, config.seed)?;
+        let field = config.field.build(&scene.extent, config.seed).map_err(|source_error| RunError::Plugin {
+            config: source.to_path_buf(),
+            section: "field",
+            source: source_error,
+        })?;
         derived.extend(Session::derive_frozen_samples(&mut config, field.as_ref()));
         let field_kind = kind_of(&config.field);
         let contraction = Contraction::new(&scene.extent);
@@ -99,6 +106,7 @@ impl Session {
         Ok(Session {
             config,
             config_dir: config_dir.to_path_buf(),
+            config_source: source.to_path_buf(),
             run_dir,
             scene,
             field,
@@ -242,8 +250,10 @@ impl Session {
             self.field.load_optimizer_state(bytes).map_err(|e| fail(format!("its optimizer section: {e}")))?;
         }
         self.step = ckpt.meta.step;
+        // A stage that levelled off ended there; never beyond the configured length, whatever
+        // the checkpoint says.
         if let Some(step) = ckpt.meta.converged_at {
-            self.stop_converged(step);
+            self.stop_converged(step.min(self.config.train.steps));
         }
         self.rng_position = match &ckpt.meta.rng_position {
             Some(p) => Some(p.parse().map_err(|_| fail(format!("its random-stream position `{p}` is not a number")))?),

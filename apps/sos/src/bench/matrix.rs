@@ -400,6 +400,10 @@ fn missing_files(config: &Value, config_dir: &Path, generated: bool) -> Option<S
         .or_else(|| missing("scene.masks", config_dir.join(text("scene", "path")?).join(text("scene", "masks")?)))
 }
 
+/// The most points one sweep may have: far more runs than any machine could train, and a
+/// bound that stops a product of long lists before it fills the memory.
+const MAX_SWEEP_POINTS: usize = 100_000;
+
 /// The points of a sweep: its explicit points, or the product or zip of its `vary` lists.
 fn sweep_points(sweep: &SweepSpec) -> anyhow::Result<Vec<Point>> {
     if !sweep.points.is_empty() {
@@ -425,9 +429,17 @@ fn sweep_points(sweep: &SweepSpec) -> anyhow::Result<Vec<Point>> {
             }
             (0..n).map(|i| vec![i; lists.len()]).collect()
         }
-        SweepMode::Product => lists.iter().fold(vec![Vec::new()], |acc, (_, l)| {
-            acc.into_iter().flat_map(|c| (0..l.len()).map(move |i| [c.clone(), vec![i]].concat())).collect()
-        }),
+        SweepMode::Product => {
+            let points = lists.iter().try_fold(1usize, |n, (_, l)| n.checked_mul(l.len()));
+            if points.is_none_or(|n| n > MAX_SWEEP_POINTS) {
+                bail!(
+                    "the product of its lists has more than {MAX_SWEEP_POINTS} points; vary fewer keys at once, or zip them (`mode = \"zip\"`)"
+                );
+            }
+            lists.iter().fold(vec![Vec::new()], |acc, (_, l)| {
+                acc.into_iter().flat_map(|c| (0..l.len()).map(move |i| [c.clone(), vec![i]].concat())).collect()
+            })
+        }
     };
     if let Some(labels) = &sweep.labels {
         if labels.len() != combos.len() {
@@ -578,7 +590,9 @@ pub fn shard(runs: Vec<PlannedRun>, index: usize, count: usize) -> Vec<PlannedRu
             g
         })
         .collect();
-    let mut load = vec![0.0f64; count.max(1)];
+    // Slices past the number of stage-1 groups stay empty: no need to hold a load for each
+    // (`--shard 0/1000000000000` is a valid, if pointless, request).
+    let mut load = vec![0.0f64; count.min(work.len()).max(1)];
     let slice_of: Vec<usize> = work
         .iter()
         .map(|&w| {
@@ -637,6 +651,29 @@ mod tests {
         assert!(swept.iter().filter(|r| r.key.seed == 0).all(|r| r.stage1_hash == a0.stage1_hash && r.hash != a0.hash));
         assert_ne!(short0.stage1_hash, a0.stage1_hash);
         assert_ne!(a1.stage1_hash, a0.stage1_hash);
+    }
+
+    #[test]
+    fn a_product_too_large_to_plan_is_refused_before_it_is_built() {
+        // Seven keys of 40 values: 1.6e11 points, which would fill the memory while planning.
+        let values = format!("[{}]", (1..=40).map(|v| v.to_string()).collect::<Vec<_>>().join(", "));
+        let keys = [
+            "segment.steps",
+            "segment.patches",
+            "segment.stride",
+            "segment.offset_grid",
+            "train.steps",
+            "train.rays_per_step",
+            "train.samples_per_ray",
+        ]
+        .iter()
+        .map(|k| format!("\"{k}\" = {values}"))
+        .collect::<Vec<_>>()
+        .join(", ");
+        let body = format!("{HEAD}[[sweep]]\nname = \"huge\"\nvary = {{ {keys} }}\n");
+        let (dir, file) = bench(&body);
+        let err = format!("{:#}", plan(&file.unwrap(), None, &dir).err().expect("the sweep planned"));
+        assert!(err.contains("sweep `huge`") && err.contains("more than 100000 points"), "{err}");
     }
 
     #[test]
@@ -751,5 +788,12 @@ mod tests {
             }
         }
         assert_eq!(sizes, [4, 4, 2, 2]);
+        // Far more slices than stage-1 groups: each group alone in one of the first slices,
+        // the rest empty, and no memory held for the empty ones.
+        let many = 1_000_000_000_000;
+        let mut firsts: Vec<String> = (0..6).flat_map(|i| shard(m.runs.clone(), i, many)).map(|r| r.key.id).collect();
+        firsts.sort();
+        assert_eq!(firsts, ids);
+        assert!(shard(m.runs.clone(), 6, many).is_empty() && shard(m.runs.clone(), many - 1, many).is_empty());
     }
 }

@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use anyhow::Context;
+use anyhow::{bail, Context};
 use serde::{Deserialize, Serialize};
 
 use super::matrix::{PlannedRun, RunKey};
@@ -267,9 +267,16 @@ impl RunRecord {
     }
 
     /// Reads a record; errors name the file.
+    /// A record is input too (merged from other machines): its hash must be the hex digest a
+    /// report shortens.
     pub fn load(path: &Path) -> anyhow::Result<RunRecord> {
         let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-        serde_json::from_str(&text).with_context(|| format!("{} is not a run record", path.display()))
+        let record: RunRecord =
+            serde_json::from_str(&text).with_context(|| format!("{} is not a run record", path.display()))?;
+        if record.hash.len() < 12 || !record.hash.bytes().all(|b| b.is_ascii_hexdigit()) {
+            bail!("{}: its config `hash` `{}` is not a hex digest; the record was edited", path.display(), record.hash);
+        }
+        Ok(record)
     }
 
     /// Writes the record atomically (a killed process leaves the old file or the new one).
@@ -287,7 +294,16 @@ pub fn load_all(dir: &Path) -> anyhow::Result<Vec<RunRecord>> {
     for e in entries {
         let path = e.with_context(|| format!("reading {}", runs.display()))?.path();
         if path.extension().is_some_and(|x| x == "json") {
-            out.push(RunRecord::load(&path)?);
+            let record = RunRecord::load(&path)?;
+            // The id names the record's copy in a merged folder: it must be this file's name.
+            if path.file_stem().and_then(|s| s.to_str()) != Some(record.key.id.as_str()) {
+                bail!(
+                    "{}: its `id` `{}` is not its file's name; the record was renamed or edited",
+                    path.display(),
+                    record.key.id
+                );
+            }
+            out.push(record);
         }
     }
     out.sort_by(|a, b| a.key.id.cmp(&b.key.id));
@@ -436,6 +452,42 @@ mod tests {
         assert!(changes_code(&top, "R  a.rs -> sos-core/src/b.rs\n"), "a renamed source file");
         assert!(!changes_code(&top, "R  x.md -> benchmarks/reports/quick/x.md\n"), "renamed into the results");
         std::fs::remove_dir_all(&top).ok();
+    }
+
+    #[test]
+    fn a_record_whose_id_or_hash_was_edited_is_refused_with_its_path() {
+        let dir = std::env::temp_dir().join(format!("sos-record-load-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let write = |file: &str, id: &str, hash: &str| {
+            let json = serde_json::json!({
+                "id": id, "scene": "s", "method": "m", "variant": "m", "sweep": null, "seed": 0,
+                "hash": hash, "status": "failed", "error": "x", "config": "", "commit": "c",
+                "machine": { "cpu": "cpu", "cores": 2, "memory_gib": 1.0, "host": "vm" },
+                "finished": "2026-01-01 00:00", "outcome": null,
+            });
+            let path = dir.join(file);
+            std::fs::write(&path, json.to_string()).unwrap();
+            path
+        };
+        assert!(RunRecord::load(&write("s__m__s0.json", "s__m__s0", "0123456789abcdef")).is_ok());
+        // Shorter than the 12 digits a report shows, and not hex.
+        for (file, hash) in [("s__m__s3.json", "h"), ("s__m__s4.json", "0123456789abcdeg")] {
+            let err = format!("{:#}", RunRecord::load(&write(file, "s__m__s3", hash)).unwrap_err());
+            assert!(err.contains("not a hex digest") && err.contains(file), "{err}");
+            std::fs::remove_file(dir.join(file)).unwrap();
+        }
+        // In a result folder, an id that would name a file outside the merged folder, or
+        // another record's file.
+        let runs = dir.join("runs");
+        std::fs::create_dir_all(&runs).unwrap();
+        std::fs::rename(dir.join("s__m__s0.json"), runs.join("s__m__s0.json")).unwrap();
+        assert_eq!(load_all(&dir).unwrap().len(), 1);
+        for id in ["../../escaped", "s__m__s0"] {
+            std::fs::rename(write("s__m__s1.json", id, "0123456789abcdef"), runs.join("s__m__s1.json")).unwrap();
+            let err = format!("{:#}", load_all(&dir).unwrap_err());
+            assert!(err.contains("is not its file's name") && err.contains("s__m__s1.json"), "{err}");
+        }
+        std::fs::remove_dir_all(&dir).ok();
     }
 
     #[test]

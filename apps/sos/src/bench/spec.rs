@@ -45,6 +45,9 @@ use serde::Deserialize;
 /// Largest side of the timed view: a 16k view with its mask is already minutes of work.
 const MAX_VIEW_SIDE: u32 = 16384;
 
+/// Most learning-curve points per stage: each is a held-out evaluation.
+const MAX_CURVE_POINTS: usize = 1000;
+
 /// A parsed benchmark file.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -251,6 +254,15 @@ impl BenchFile {
                 if !(1..=MAX_VIEW_SIDE).contains(&w) || !(1..=MAX_VIEW_SIDE).contains(&h) {
                     bail!("{file}: {what} is {w}x{h}; give a width and height from 1 to {MAX_VIEW_SIDE}");
                 }
+            }
+        }
+        let curves = std::iter::once(("`bench.curve_points`".to_string(), Some(self.bench.curve_points)))
+            .chain(self.profiles.iter().map(|(name, p)| (format!("profile `{name}`, `curve_points`"), p.curve_points)));
+        for (what, points) in curves {
+            // Each point is a held-out evaluation: more than a stage has steps is pointless,
+            // and a huge count costs a check on every step.
+            if points.is_some_and(|n| n > MAX_CURVE_POINTS) {
+                bail!("{file}: {what} is {}; give at most {MAX_CURVE_POINTS} (0: no curve)", points.unwrap_or(0));
             }
         }
         if !self.methods.contains_key(&self.bench.baseline) {
