@@ -113,9 +113,16 @@ fn a_matrix_runs_reports_caches_and_merges_from_shards() {
     assert!(view["seconds"].as_f64().unwrap() > 0.0);
     assert_eq!(done["outcome"]["stage2_steps"], 4);
 
+    // The record names the program that ran it: this very binary.
+    use sha2::Digest;
+    let binary = std::fs::read(env!("CARGO_BIN_EXE_sos")).unwrap();
+    let digest: String = sha2::Sha256::digest(&binary).iter().map(|b| format!("{b:02x}")).collect();
+    assert_eq!(done["program"].as_str(), Some(&digest[..12]), "{done:#}");
+
     let skipped = json(&results.join("runs/missing__default__s0.json"));
     assert_eq!(skipped["status"], "skipped");
     assert!(skipped["error"].as_str().unwrap().contains("path missing"), "{skipped:#}");
+    assert!(skipped.get("program").is_none(), "a skipped run ran no program: {skipped:#}");
     // The sweep point equal to the default reuses its result.
     let reused = json(&results.join("runs/tiny__steps-1-4__s0.json"));
     assert_eq!(reused["hash"], done["hash"]);
@@ -126,6 +133,7 @@ fn a_matrix_runs_reports_caches_and_merges_from_shards() {
     assert_eq!(report["counts"]["skipped"], 4);
     let md = std::fs::read_to_string(results.join("report.md")).unwrap();
     assert!(md.contains("## tiny") && md.contains("| default |") && md.contains("steps: 2"), "{md}");
+    assert!(md.contains(&format!(", program {};", &digest[..12])), "{md}");
     // Every tiny run meets the low target at its first evaluation: the time to it is the
     // training clock to that point plus the mask time, within the run's total.
     assert!(md.contains("To target is the wall time until the run's held-out masks met mIoU ≥ 0.01"), "{md}");

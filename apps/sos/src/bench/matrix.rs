@@ -547,7 +547,7 @@ pub fn hash_text(text: &str) -> String {
 }
 
 /// Hex SHA-256 of bytes.
-fn hash_bytes(bytes: &[u8]) -> String {
+pub(crate) fn hash_bytes(bytes: &[u8]) -> String {
     Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
 }
 

@@ -229,6 +229,12 @@ pub struct RunRecord {
     pub config: String,
     /// Commit of the checkout that ran it (`unknown` outside git; `+dirty` with local changes).
     pub commit: String,
+    /// The program that ran it: the first 12 hex digits of the SHA-256 of its binary (this
+    /// `sos`, or a method's other build). The checkout and the binary can differ, e.g. when a
+    /// long profile runs one build throughout. Absent for runs that did not execute (skipped,
+    /// or a result reused) and in records of older builds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub program: Option<String>,
     /// The machine.
     pub machine: Machine,
     /// When the run finished (UTC, `YYYY-MM-DD HH:MM`).
@@ -259,6 +265,7 @@ impl RunRecord {
             error,
             config: toml::to_string(&run.config).unwrap_or_default(),
             commit: commit.to_string(),
+            program: None,
             machine: Machine::here(),
             finished: utc_now(),
             outcome,

@@ -97,6 +97,9 @@ pub struct Report {
     pub meta: BenchMeta,
     /// Commits the runs were made at.
     pub commits: Vec<String>,
+    /// Programs (binary hashes) that ran them, where the records name one.
+    #[serde(default)]
+    pub programs: Vec<String>,
     /// Machines (CPU, cores, memory) the runs ran on.
     pub machines: Vec<String>,
     /// When the last run finished (UTC).
@@ -191,6 +194,12 @@ pub fn build(records: &[RunRecord], meta: &BenchMeta) -> Report {
     Report {
         meta: meta.clone(),
         commits: distinct(&|r| r.commit.clone()),
+        programs: {
+            let mut p: Vec<String> = records.iter().filter_map(|r| r.program.clone()).collect();
+            p.sort();
+            p.dedup();
+            p
+        },
         machines: distinct(&|r| format!("{} ({} cores, {} GiB)", r.machine.cpu, r.machine.cores, r.machine.memory_gib)),
         finished: records
             .iter()
@@ -306,14 +315,24 @@ fn fmt_stat(s: Option<&Stat>, digits: usize) -> String {
 }
 
 impl Report {
+    /// `, program <hash>` (or `programs …`) for records that name the binary that ran them.
+    fn programs_note(&self) -> String {
+        match self.programs.len() {
+            0 => String::new(),
+            1 => format!(", program {}", self.programs[0]),
+            _ => format!(", programs {}", self.programs.join(", ")),
+        }
+    }
+
     /// The Markdown report.
     pub fn to_markdown(&self) -> String {
         let mut md = format!(
-            "# Benchmark `{}`, profile `{}`\n\nWritten by `sos bench`. Last run finished {} UTC; commit {}; {}.\n",
+            "# Benchmark `{}`, profile `{}`\n\nWritten by `sos bench`. Last run finished {} UTC; commit {}{}; {}.\n",
             self.meta.file,
             self.meta.profile,
             self.finished,
             self.commits.join(", "),
+            self.programs_note(),
             self.machines.join("; ")
         );
         md.push_str(&format!(

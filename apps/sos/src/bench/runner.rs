@@ -123,6 +123,7 @@ pub fn run_all(
             // Only this invocation's records: each is the latest of its id, and its work
             // folder holds that very run (an older record of a rerun id would not).
             let source = records.iter().find(|r| share_stage1 && shares_stage1(r, run, &work_dir));
+            let program = program_id(run);
             let (mut record, how) = match execute(run, out, curve_points, source) {
                 Ok(outcome) => {
                     tally.ran += 1;
@@ -137,6 +138,7 @@ pub fn run_all(
                 }
             };
             record.wall_seconds = Some(started.elapsed().as_secs_f64());
+            record.program = program;
             (record, how)
         };
         // Unchanged records are not rewritten, so a rerun of a finished matrix writes nothing.
@@ -307,6 +309,17 @@ pub(super) fn run_config_text(run: &PlannedRun, work: &Path) -> anyhow::Result<S
         t.insert("output_dir".into(), Value::String(work.display().to_string()));
     }
     Ok(toml::to_string(&config)?)
+}
+
+/// The first 12 hex digits of the SHA-256 of the binary that runs `run` (a method's own
+/// build, or this one); `None` when it cannot be read.
+fn program_id(run: &PlannedRun) -> Option<String> {
+    let path = match &run.program {
+        Some(p) => p.clone(),
+        None => own_binary().ok()?,
+    };
+    let bytes = std::fs::read(path).ok()?;
+    Some(super::matrix::hash_bytes(&bytes)[..12].to_string())
 }
 
 /// The binary to start runs with: this one, or, when it was rebuilt while the matrix runs
