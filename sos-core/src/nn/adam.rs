@@ -55,7 +55,8 @@ impl Adam {
         if !(self.lr > 0.0 && self.lr.is_finite() && self.eps > 0.0 && self.eps.is_finite()) {
             return Some(format!("Adam's learning rate {} and eps {} must be positive numbers", self.lr, self.eps));
         }
-        let fresh = self.m.is_empty() && self.v.is_empty();
+        // `step` creates the moments on the first step only (`t == 0`).
+        let fresh = self.m.is_empty() && self.v.is_empty() && self.t == 0;
         let matches = |moments: &[Vec<f32>]| {
             moments.len() == param_lens.len() && moments.iter().zip(param_lens).all(|(m, &n)| m.len() == n)
         };

@@ -113,13 +113,15 @@ mod tests {
     #[test]
     fn a_head_that_cannot_run_is_refused_when_read_not_when_used() {
         type Edit = Box<dyn FnOnce(&mut serde_json::Value)>;
-        let cases: [(&str, Edit); 6] = [
+        let cases: [(&str, Edit); 7] = [
             ("no layers", Box::new(|j| j["mlp"]["layers"] = serde_json::json!([]))),
             ("holds", Box::new(|j| j["mlp"]["layers"][0]["weight"]["value"] = serde_json::json!([0.5]))),
             ("holds", Box::new(|j| j["mlp"]["layers"][1]["bias"]["value"] = serde_json::json!([]))),
             ("zero width", Box::new(|j| j["mlp"]["layers"][0]["out_dim"] = serde_json::json!(0))),
             ("decays", Box::new(|j| j["adam"]["beta1"] = serde_json::json!(1.0))),
             ("other parameters", Box::new(|j| j["adam"]["m"] = serde_json::json!([[0.0]]))),
+            // Steps taken but no moments kept: the next step would find none to update.
+            ("other parameters", Box::new(|j| j["adam"]["t"] = serde_json::json!(5))),
         ];
         for (want, edit) in cases {
             let err = SegHead::from_bytes(&edited(edit)).expect_err("a broken head loads");
