@@ -48,6 +48,9 @@ impl Default for AppearanceConfig {
     }
 }
 
+/// Largest `samples` (points per patch side).
+const MAX_SAMPLES: usize = 64;
+
 sos_core::plugin_kind! {
     kind: "appearance",
     summary: "STEGO correlation loss between teacher features and logits at random sample points",
@@ -58,8 +61,10 @@ sos_core::plugin_kind! {
             validate::non_negative(KIND, "identity_weight", self.identity_weight)?;
             validate::finite(KIND, "negative_shift", self.negative_shift)?;
             validate::non_negative(KIND, "negative_weight", self.negative_weight)?;
-            if self.samples == 0 {
-                return Err(validate::invalid(KIND, "samples", "must be at least 1"));
+            // Each patch correlates `samples²` points with another's `samples²`: at 64 that
+            // is 16 M pairs per patch pair, already far beyond the reference's 11.
+            if !(1..=MAX_SAMPLES).contains(&self.samples) {
+                return Err(validate::invalid(KIND, "samples", format!("must be in 1..={MAX_SAMPLES}")));
             }
             Ok(Box::new(AppearanceLoss { config: self.clone() }))
         }

@@ -142,8 +142,10 @@ impl Camera {
         if !finite {
             return Err("pose or intrinsics contain NaN or infinity".into());
         }
-        if self.fx <= 0.0 || self.fy <= 0.0 {
-            return Err(format!("focal length must be positive, got {} {}", self.fx, self.fy));
+        // Below a thousandth of a pixel (a field of view of practically 180°) the ray
+        // directions of the image's pixels overflow.
+        if self.fx < MIN_FOCAL || self.fy < MIN_FOCAL {
+            return Err(format!("focal length must be at least {MIN_FOCAL} px, got {} {}", self.fx, self.fy));
         }
         let m = &self.cam_to_world;
         for a in 0..3 {
@@ -158,6 +160,9 @@ impl Camera {
         Ok(())
     }
 }
+
+/// Smallest focal length in pixels [`Camera::validate`] accepts.
+pub const MIN_FOCAL: f32 = 1e-3;
 
 /// Vector difference.
 pub fn sub(a: Vec3, b: Vec3) -> Vec3 {

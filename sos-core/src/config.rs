@@ -436,6 +436,8 @@ impl Default for RenderConfig {
 /// low enough that a typo (`1e9`) is refused at once instead of hanging the run or failing
 /// to allocate.
 pub const MAX_STEPS: usize = 10_000_000;
+/// Largest `segment.stride`: a 256-ray patch at this stride spans a million pixels.
+pub const MAX_STRIDE: u32 = 4096;
 /// Upper bound of `train.rays_per_step` (a step's buffers grow with rays x samples).
 pub const MAX_RAYS_PER_STEP: usize = 1 << 20;
 /// Upper bound of `train.samples_per_ray`.
@@ -543,14 +545,16 @@ impl RunConfig {
             return Err(invalid("segment.steps", &format!("must be at most {MAX_STEPS}")));
         }
         if g.steps > 0 {
-            if !(1..=MAX_PATCHES).contains(&g.patches) {
-                return Err(invalid("segment.patches", &format!("must be in 1..={MAX_PATCHES}")));
+            // A patch's negatives are the other patches of its step: one alone has none.
+            if !(2..=MAX_PATCHES).contains(&g.patches) {
+                return Err(invalid("segment.patches", &format!("must be in 2..={MAX_PATCHES}")));
             }
             if !(2..=256).contains(&g.patch_size) {
                 return Err(invalid("segment.patch_size", "must be in 2..=256"));
             }
-            if g.stride == 0 {
-                return Err(invalid("segment.stride", "must be at least 1"));
+            // Wider than any view: a patch of 256 rays at this stride spans a million pixels.
+            if !(1..=MAX_STRIDE).contains(&g.stride) {
+                return Err(invalid("segment.stride", &format!("must be in 1..={MAX_STRIDE}")));
             }
             if !(g.lr > 0.0 && g.lr.is_finite()) {
                 return Err(invalid("segment.lr", "must be a positive number"));
@@ -578,8 +582,13 @@ impl RunConfig {
                 return Err(invalid("segment.check_every", "must be at least 1 with `stop_when_stable = true`"));
             }
         }
-        if self.head.outputs == 0 || self.head.hidden.contains(&0) {
-            return Err(invalid("head", "`outputs` and every `hidden` width must be at least 1"));
+        if self.head.hidden.contains(&0) {
+            return Err(invalid("head.hidden", "every width must be at least 1"));
+        }
+        // The losses normalise each sample's logits over the channels: one channel normalises
+        // to a constant, whose gradient is zero, and the head would never learn.
+        if self.head.outputs < 2 {
+            return Err(invalid("head.outputs", "must be at least 2"));
         }
         if self.head.outputs > MAX_HEAD_WIDTH {
             return Err(invalid("head.outputs", &format!("must be at most {MAX_HEAD_WIDTH}")));
@@ -618,6 +627,15 @@ impl RunConfig {
             if !(l.weight >= 0.0 && l.weight.is_finite()) {
                 return Err(invalid(&format!("loss[{i}].weight"), "must be zero or positive"));
             }
+        }
+        // No `[[loss]]` means the default losses; a list whose every weight is 0 trains nothing.
+        let trains_head = self.segment.steps > 0 && self.segment.photometric_weight == 0.0;
+        if trains_head && !self.loss.is_empty() && !self.loss.iter().any(|l| l.weight > 0.0) {
+            return Err(invalid(
+                "loss",
+                "stage 2 needs a loss with a positive `weight` (every `[[loss]]` weight is 0); set one, \
+                 or `segment.steps = 0` to skip stage 2",
+            ));
         }
         if self.render.memory_gib.is_some_and(|g| !(g.is_finite() && g > 0.0 && g <= 1e6)) {
             return Err(invalid("render.memory_gib", "must be a positive number of GiB"));

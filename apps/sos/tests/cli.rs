@@ -110,6 +110,21 @@ fn init_output_parses_back_and_round_trips() {
 }
 
 #[test]
+fn printing_to_a_full_disk_is_an_error_not_a_panic() {
+    let Ok(full) = std::fs::OpenOptions::new().write(true).open("/dev/full") else { return };
+    for command in ["init", "list"] {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_sos"))
+            .arg(command)
+            .stdout(full.try_clone().unwrap())
+            .output()
+            .unwrap();
+        let stderr = text(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{command}: {stderr}");
+        assert!(stderr.contains("standard output") && !stderr.contains("panicked"), "{command}: {stderr}");
+    }
+}
+
+#[test]
 fn config_errors_exit_2_naming_the_file_and_key() {
     let dir = temp_dir("errors");
     let good = tiny_config("errors", 1, 0);

@@ -281,7 +281,7 @@ fn export_writes_every_part_and_each_parses_back_consistently() {
 fn a_malformed_poses_file_exits_2_naming_it() {
     let dir = common::temp_dir("sos-export", "poses");
     std::fs::write(dir.join("tiny.toml"), config("poses", 1, 0)).unwrap();
-    let cases: [(&str, &str, &str); 3] = [
+    let cases: [(&str, &str, &str); 4] = [
         ("broken.json", r#"{"width": 40, "height": 30, "focal": 35, "poses": [[[1, 0"#, "broken.json"),
         (
             "scaled.json",
@@ -289,6 +289,12 @@ fn a_malformed_poses_file_exits_2_naming_it() {
             "poses[0]",
         ),
         ("misspelt.json", r#"{"width": 40, "height": 30, "focul": 35, "poses": []}"#, "focul"),
+        // A subnormal focal length: every pixel's ray direction would overflow to NaN.
+        (
+            "subnormal.json",
+            r#"{"width": 4, "height": 3, "focal": 1e-45, "poses": [[[1,0,0,0],[0,1,0,0],[0,0,1,2],[0,0,0,1]]]}"#,
+            "focal length",
+        ),
     ];
     for (file, body, key) in cases {
         std::fs::write(dir.join(file), body).unwrap();
@@ -309,6 +315,26 @@ fn a_malformed_poses_file_exits_2_naming_it() {
     assert_eq!(out.status.code(), Some(2), "{stderr}");
     assert!(stderr.contains("nowhere.bin") && stderr.contains("sos train"), "{stderr}");
     assert!(!dir.join("runs/poses/export").exists(), "an export that failed left a folder");
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
+fn a_camera_that_sees_nothing_gets_an_empty_mask() {
+    let dir = common::temp_dir("sos-export", "empty-view");
+    std::fs::write(dir.join("tiny.toml"), config("empty", 2, 2)).unwrap();
+    let out = sos(&["train", "tiny.toml", "--quiet"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    // Outside the room, looking away from it: every ray misses the scene's extent.
+    std::fs::write(
+        dir.join("away.json"),
+        r#"{"width": 24, "height": 24, "focal": 20, "poses": [[[-1,0,0,0],[0,1,0,1.5],[0,0,-1,60],[0,0,0,1]]]}"#,
+    )
+    .unwrap();
+    let out = sos(&["export", "tiny.toml", "--what", "masks", "--poses", "away.json"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let mask = image::open(dir.join("runs/empty/export/masks/0000.png")).unwrap().to_luma8();
+    assert_eq!(mask.dimensions(), (24, 24));
+    assert!(mask.pixels().all(|p| p.0[0] == 0), "a view of nothing was given foreground");
     std::fs::remove_dir_all(dir).ok();
 }
 

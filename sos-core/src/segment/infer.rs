@@ -558,6 +558,11 @@ impl<'a> MaskInference<'a> {
             }
             (labels, k, fg, foreground, share) = (split, k + 1, split_fg, split_foreground, split_share);
         }
+        // A view that renders no point at all (every ray empty) shows no object; the
+        // clusters of its constant logits would otherwise make all of it foreground.
+        if voters.is_empty() {
+            foreground.iter_mut().for_each(|f| *f = false);
+        }
         let evidence = MaskEvidence {
             labels: &labels,
             foreground_cluster: fg,

@@ -183,6 +183,8 @@ pub fn train_segmentation_observed(
     let mut stability = cfg.stop_when_stable.then(|| MaskStability::new(&session.scene, cfg.stable_change as f64));
     let mut last = SegStepStats::default();
     let mut bad_steps = 0;
+    let first_step = seg.step;
+    let mut good_steps = 0usize;
     while seg.step < cfg.steps {
         let patches = seg.sampler.next_batch(&session.scene, cfg.patches);
         for notice in seg.sampler.take_notices() {
@@ -241,6 +243,7 @@ pub fn train_segmentation_observed(
             continue;
         }
         bad_steps = 0;
+        good_steps += 1;
         let ray_grad = backward(session, seg, &r, &out, layout, &grad_logits);
         let lr_factor = cfg.final_lr_factor.powf(seg.step as f32 / cfg.steps.max(1) as f32);
         seg.head.step(lr_factor);
@@ -284,6 +287,14 @@ pub fn train_segmentation_observed(
         }
     }
     observer.stage_ends(Stage::Segmentation);
+    // Fewer bad steps in a row than the limit, yet none that trained: the head is as it began.
+    if seg.step > first_step && good_steps == 0 {
+        return Err(RunError::Diverged(format!(
+            "none of the {} stage-2 steps had a finite loss, so the head did not train; check the `[[loss]]` \
+             settings",
+            seg.step - first_step
+        )));
+    }
     Ok(last)
 }
 

@@ -47,7 +47,7 @@ pub fn run(path: Option<&Path>, scene: &str, field: &str) -> anyhow::Result<()> 
             std::fs::write(p, &text).with_context(|| format!("writing {}", p.display()))?;
             eprintln!("wrote {}", p.display());
         }
-        None => print!("{text}"),
+        None => super::write_stdout(&text)?,
     }
     Ok(())
 }

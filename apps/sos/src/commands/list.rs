@@ -5,26 +5,27 @@ use sos_core::plugin::{
 };
 use sos_core::registry::{registrations, Registration};
 
-fn section<C: ?Sized + 'static>(role: &str, table: &str)
+fn section<C: ?Sized + 'static>(out: &mut String, role: &str, table: &str)
 where
     Registration<C>: inventory::Collect,
 {
-    println!("{role} ([{table}] kind = ...):");
+    out.push_str(&format!("{role} ([{table}] kind = ...):\n"));
     let all = registrations::<C>();
     if all.is_empty() {
-        println!("  (none registered)");
+        out.push_str("  (none registered)\n");
     }
     for r in all {
-        println!("  {:<18} {:<22} {}", r.kind, format!("({})", r.crate_name), r.summary);
+        out.push_str(&format!("  {:<18} {:<22} {}\n", r.kind, format!("({})", r.crate_name), r.summary));
     }
 }
 
 /// `sos list`: every registered kind per role, with its crate.
 pub fn run() -> anyhow::Result<()> {
-    section::<dyn DatasetConfig>("datasets", "scene");
-    section::<dyn RadianceFieldConfig>("radiance fields", "field");
-    section::<dyn FeatureExtractorConfig>("feature extractors", "extractor");
-    section::<dyn PairMinerConfig>("pair miners", "miner");
-    section::<dyn ContrastiveLossConfig>("contrastive losses", "[loss]");
-    Ok(())
+    let mut out = String::new();
+    section::<dyn DatasetConfig>(&mut out, "datasets", "scene");
+    section::<dyn RadianceFieldConfig>(&mut out, "radiance fields", "field");
+    section::<dyn FeatureExtractorConfig>(&mut out, "feature extractors", "extractor");
+    section::<dyn PairMinerConfig>(&mut out, "pair miners", "miner");
+    section::<dyn ContrastiveLossConfig>(&mut out, "contrastive losses", "[loss]");
+    super::write_stdout(&out)
 }

@@ -53,3 +53,17 @@ pub fn announce_resolved(session: &sos_core::train::Session) -> anyhow::Result<(
     text.push_str(&session.config.to_toml());
     write_atomic(&session.run_dir.join("resolved.toml"), &text)
 }
+
+/// Writes `text` to standard output: a full disk or a closed file is an error naming standard
+/// output (where `print!` would panic); a reader that stopped early (a broken pipe, as with
+/// `| head`) is not.
+pub fn write_stdout(text: &str) -> anyhow::Result<()> {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    match out.write_all(text.as_bytes()).and_then(|()| out.flush()) {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => {
+            Err(anyhow::Error::new(e).context("writing to standard output"))
+        }
+        _ => Ok(()),
+    }
+}
