@@ -382,9 +382,8 @@ impl RadianceField for VoxelGridField {
                 ),
             });
         }
-        // The same bounds as the config's `resolution`: a checkpoint is input too.
-        if res.iter().any(|r| !(2..=1024).contains(r)) {
-            return Err(malformed(format!("resolution {res:?}: each entry must be in 2..=1024")));
+        if res.iter().any(|r| !super::RESOLUTION_RANGE.contains(r)) {
+            return Err(malformed(format!("resolution {res:?}: each entry must be in {:?}", super::RESOLUTION_RANGE)));
         }
         let values = state::values(kind, body, res[0] * res[1] * res[2] * channels)?;
         self.grow_to(res);

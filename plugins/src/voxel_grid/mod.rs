@@ -66,6 +66,9 @@ impl Default for VoxelGridConfig {
     }
 }
 
+/// Vertices a side a grid may have, in a config and in a checkpoint (which is input too).
+pub(crate) const RESOLUTION_RANGE: std::ops::RangeInclusive<usize> = 2..=1024;
+
 impl VoxelGridConfig {
     fn invalid(key: &str, reason: impl Into<String>) -> BuildError {
         BuildError::Invalid { kind: "voxel-grid".into(), key: key.into(), reason: reason.into() }
@@ -73,8 +76,8 @@ impl VoxelGridConfig {
 
     fn validate(&self) -> Result<(), BuildError> {
         for a in 0..3 {
-            if !(2..=1024).contains(&self.resolution[a]) {
-                return Err(Self::invalid("resolution", "each entry must be in 2..=1024"));
+            if !RESOLUTION_RANGE.contains(&self.resolution[a]) {
+                return Err(Self::invalid("resolution", format!("each entry must be in {RESOLUTION_RANGE:?}")));
             }
             if !(2..=self.resolution[a]).contains(&self.initial_resolution[a]) {
                 return Err(Self::invalid("initial_resolution", "each entry must be in 2..=resolution"));

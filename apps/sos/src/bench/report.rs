@@ -185,22 +185,20 @@ pub fn build(records: &[RunRecord], meta: &BenchMeta) -> Report {
         };
         *counts.entry(key.to_string()).or_insert(0) += 1;
     }
-    let distinct = |f: &dyn Fn(&RunRecord) -> String| {
-        let mut v: Vec<String> = records.iter().filter(|r| r.status != Status::Skipped).map(f).collect();
+    // Sorted and deduplicated, from the runs that ran (a skipped run has none of these).
+    let distinct = |f: &dyn Fn(&RunRecord) -> Option<String>| {
+        let mut v: Vec<String> = records.iter().filter(|r| r.status != Status::Skipped).filter_map(f).collect();
         v.sort();
         v.dedup();
         v
     };
     Report {
         meta: meta.clone(),
-        commits: distinct(&|r| r.commit.clone()),
-        programs: {
-            let mut p: Vec<String> = records.iter().filter_map(|r| r.program.clone()).collect();
-            p.sort();
-            p.dedup();
-            p
-        },
-        machines: distinct(&|r| format!("{} ({} cores, {} GiB)", r.machine.cpu, r.machine.cores, r.machine.memory_gib)),
+        commits: distinct(&|r| Some(r.commit.clone())),
+        programs: distinct(&|r| r.program.clone()),
+        machines: distinct(&|r| {
+            Some(format!("{} ({} cores, {} GiB)", r.machine.cpu, r.machine.cores, r.machine.memory_gib))
+        }),
         finished: records
             .iter()
             .filter(|r| r.status == Status::Done)

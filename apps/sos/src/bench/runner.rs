@@ -312,7 +312,8 @@ pub(super) fn run_config_text(run: &PlannedRun, work: &Path) -> anyhow::Result<S
 }
 
 /// The first 12 hex digits of the SHA-256 of the binary that runs `run` (a method's own
-/// build, or this one); `None` when it cannot be read.
+/// build, or this one); `None` when it cannot be read. Hashed for each run, not once: the
+/// binary may be rebuilt while the matrix runs (see [`own_binary`]).
 fn program_id(run: &PlannedRun) -> Option<String> {
     let path = match &run.program {
         Some(p) => p.clone(),
