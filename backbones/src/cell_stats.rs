@@ -37,6 +37,10 @@ const VERSION: u32 = 3;
 /// better of 8- and 4-px cells on 64-ray patches of the object-centric rig and on 32-ray
 /// patches of the unbounded NeRF++ rig (benchmarks/RESULTS.md, "nerf++ teacher cells").
 pub const CELLS_PER_PATCH: usize = 8;
+
+/// Fewest cells across a stage-2 patch that a set `cell` may give: with one, every ray of a
+/// patch shares one teacher feature and the appearance loss has nothing to correlate.
+pub const MIN_CELLS_PER_PATCH: usize = 2;
 /// Cell side outside a run (no patch to follow), the 8x8 grid of a 64-ray patch.
 const DEFAULT_CELL: usize = 8;
 
@@ -208,6 +212,25 @@ sos_core::plugin_kind! {
                 cell,
                 format!("{CELLS_PER_PATCH} cells across the {}-ray patch", patch.patch_size),
             )]
+        }
+
+        fn check_for(&self, patch: &PatchFacts) -> Result<(), BuildError> {
+            let (cell, size) = (self.cell(), patch.patch_size as usize);
+            let cells = size / cell;
+            if cells < MIN_CELLS_PER_PATCH {
+                let widest = size / MIN_CELLS_PER_PATCH;
+                let or_cell = if widest >= 2 { format!(", or this cell at most {widest} px") } else { String::new() };
+                return Err(BuildError::Invalid {
+                    kind: KIND.into(),
+                    key: "cell".into(),
+                    reason: format!(
+                        "{cell} px gives the {size}-ray patches of stage 2 {cells} cell(s) across, and the appearance \
+                         loss needs at least {MIN_CELLS_PER_PATCH}: make `segment.patch_size` at least {}{or_cell}",
+                        MIN_CELLS_PER_PATCH * cell
+                    ),
+                });
+            }
+            Ok(())
         }
     }
 }

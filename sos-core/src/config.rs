@@ -409,9 +409,11 @@ impl Default for TrainConfig {
 pub struct RenderConfig {
     /// Rays rendered at once.
     pub chunk: usize,
-    /// Render every held-out view when training ends.
+    /// Write every held-out view's renders when training ends (colour; after stage 2 also
+    /// masks and overlays). The metrics are measured either way.
     pub test_views: bool,
-    /// Render the scene's novel camera path when training ends.
+    /// Render the scene's novel camera path when training ends (`sos train`, `sos segment`):
+    /// colour frames, and after stage 2 their masks and overlays, as `sos render` does.
     pub camera_path: bool,
     /// GiB that frozen renders and the segmentation head may keep between passes (see
     /// [`MemoryBudget`](crate::render::memory_budget::MemoryBudget)); a smaller budget costs time,

@@ -116,14 +116,15 @@ pub fn run() -> ExitCode {
         Command::Segment { config, checkpoint, masks_only } => {
             commands::segment::run(&config, checkpoint.as_deref(), masks_only, progress)
         }
-        Command::Render { config, checkpoint, export } => commands::render::run(&config, checkpoint.as_deref())
-            .and_then(|()| match export {
+        Command::Render { config, checkpoint, export } => {
+            commands::render::run(&config, checkpoint.as_deref(), progress).and_then(|()| match export {
                 Some(what) => {
                     let options = ExportOptions { checkpoint, what, progress, ..ExportOptions::default() };
                     export::run(&config, &options)
                 }
                 None => Ok(()),
-            }),
+            })
+        }
         Command::Export { config, options } => export::run(&config, &ExportOptions { progress, ..options }),
         Command::Eval { config, checkpoint } => commands::eval::run(&config, checkpoint.as_deref()),
         Command::Compare { prediction, reference, out } => {

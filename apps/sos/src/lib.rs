@@ -3,6 +3,18 @@
 //! plugin linked into the calling program. Every failure prints the chain of causes (file,
 //! key, what to do) and exits with code 2.
 
+/// `println!` for a command's output: when standard output cannot be written (a full disk, a
+/// closed file) it returns an error naming standard output instead of panicking; a reader that
+/// stopped early (`| head`) is not an error.
+macro_rules! say {
+    () => {
+        $crate::commands::write_stdout("\n")
+    };
+    ($($arg:tt)*) => {
+        $crate::commands::write_stdout(&format!("{}\n", format_args!($($arg)*)))
+    };
+}
+
 pub mod allocator;
 pub mod bench;
 mod cli;

@@ -289,6 +289,33 @@ fn ablations_run_from_config_alone() {
 }
 
 #[test]
+fn render_settings_choose_what_a_finished_run_writes() {
+    let dir = temp_dir("render-settings");
+    let render = "chunk = 4096\ntest_views = false\ncamera_path = true\n";
+    // Two stages: masks are measured but not written; the camera path gets frames and masks.
+    std::fs::write(dir.join("both.toml"), tiny_config("both", 30, 4).replace("chunk = 4096\n", render)).unwrap();
+    let out = sos(&["train", "both.toml", "--quiet"], &dir);
+    assert!(out.status.success(), "{}\n{}", text(&out.stdout), text(&out.stderr));
+    let run = dir.join("runs").join("both");
+    for sub in ["masks", "overlays", "test", "mask_evidence"] {
+        assert!(!run.join(sub).exists(), "{sub}/ written with render.test_views = false");
+    }
+    let metrics: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("metrics.json")).unwrap()).unwrap();
+    assert_finite(&metrics, &["/stage2/test/segmentation/miou"]);
+    for sub in ["path", "path_masks", "path_overlays"] {
+        assert!(run.join(sub).join("0001.png").is_file(), "no {sub}/0001.png with render.camera_path = true");
+    }
+    // Stage 1 alone: colour frames of the path, nothing of masks.
+    std::fs::write(dir.join("one.toml"), tiny_config("one", 30, 0).replace("chunk = 4096\n", render)).unwrap();
+    let out = sos(&["train", "one.toml", "--quiet"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let run = dir.join("runs").join("one");
+    assert!(run.join("path").join("0001.png").is_file() && !run.join("path_masks").exists());
+    assert!(!run.join("test").exists(), "test/ written with render.test_views = false");
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
 fn compare_scores_a_mask_against_a_resized_reference() {
     let dir = temp_dir("compare");
     // Reference at twice the prediction's size: the left half is foreground.
@@ -314,6 +341,19 @@ fn compare_scores_a_mask_against_a_resized_reference() {
     assert!((json["iou_fg"].as_f64().unwrap() - 0.5).abs() < 1e-9, "{json}");
     assert!((json["iou_bg"].as_f64().unwrap() - 10.0 / 15.0).abs() < 1e-9, "{json}");
     assert!(text(&out.stdout).contains("IoU(FG) 0.5000"));
+
+    // Its result line cannot be written: an error naming standard output, not a panic.
+    if let Ok(full) = std::fs::OpenOptions::new().write(true).open("/dev/full") {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_sos"))
+            .args(["compare", "pred.png", "reference.png"])
+            .current_dir(&dir)
+            .stdout(full)
+            .output()
+            .unwrap();
+        let stderr = text(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{stderr}");
+        assert!(stderr.contains("standard output") && !stderr.contains("panicked"), "{stderr}");
+    }
 
     let missing = sos(&["compare", "pred.png", "nowhere.png"], &dir);
     assert_eq!(missing.status.code(), Some(2));

@@ -379,6 +379,28 @@ fn compare_refuses_what_is_not_a_mask_naming_the_file() {
 }
 
 #[test]
+fn a_teacher_cell_as_wide_as_the_patch_is_refused_before_training() {
+    let dir = temp_dir("sos-hostile", "wide_cell");
+    let mut config: toml::Table = tiny(&dir, "wide_cell").parse().unwrap();
+    let segment = config.get_mut("segment").and_then(toml::Value::as_table_mut).unwrap();
+    segment.insert("steps".into(), 1.into());
+    segment.insert("patch_size".into(), 16.into());
+    let mut extractor = toml::Table::new();
+    extractor.insert("kind".into(), "cell-stats".into());
+    extractor.insert("cell".into(), 16.into());
+    config.insert("extractor".into(), extractor.into());
+    std::fs::write(dir.join("wide.toml"), toml::to_string(&config).unwrap()).unwrap();
+    let out = sos(&["train", "wide.toml"], &dir);
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    for part in ["wide.toml", "[extractor]", "`cell`", "segment.patch_size", "at most 8 px"] {
+        assert!(stderr.contains(part), "the error does not name {part}: {stderr}");
+    }
+    assert!(!dir.join("runs/wide_cell/checkpoint.bin").exists(), "stage 1 ran");
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
 fn a_missing_scene_path_is_named_as_the_missing_key() {
     let dir = temp_dir("sos-hostile", "no_path");
     let mut failures = Vec::new();

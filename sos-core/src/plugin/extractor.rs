@@ -79,6 +79,13 @@ pub trait FeatureExtractorConfig: std::fmt::Debug + Send + Sync {
     fn derive_for(&mut self, _patch: &PatchFacts) -> Vec<DerivedSetting> {
         Vec::new()
     }
+
+    /// Refuses settings that cannot work for the patches the teacher is shown (e.g. a cell
+    /// as wide as the patch: one teacher feature per patch, nothing to correlate within it).
+    /// Called once per run with stage 2, after [`FeatureExtractorConfig::derive_for`].
+    fn check_for(&self, _patch: &PatchFacts) -> Result<(), BuildError> {
+        Ok(())
+    }
 }
 
 /// What building an extractor needs from the run besides its own settings.

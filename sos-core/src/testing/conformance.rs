@@ -498,13 +498,18 @@ fn build_or_report<T>(role: &str, kind: &str, built: Result<T, BuildError>) -> O
     }
 }
 
-/// A teacher's default config builds (or names the missing resource), and its features have
-/// the documented shapes, are finite and reproduce on 1 and 2 threads.
+/// A teacher's default config accepts the settings it derives for 64-ray patches, builds (or
+/// names the missing resource), and its features have the documented shapes, are finite and
+/// reproduce on 1 and 2 threads.
 pub fn check_extractor_kind(kind: &str) {
     let registration =
         find::<dyn FeatureExtractorConfig>(kind).unwrap_or_else(|| panic!("no extractor `{kind}` is registered"));
     let mut config = (registration.default_config)();
-    config.derive_for(&crate::derived::PatchFacts { patch_size: 64, stride: 6 });
+    let patch = crate::derived::PatchFacts { patch_size: 64, stride: 6 };
+    config.derive_for(&patch);
+    if let Err(e) = config.check_for(&patch) {
+        panic!("extractor `{kind}`: the settings it derives for 64-ray patches are refused: {e}");
+    }
     let Some(extractor) = build_or_report("extractor", kind, config.build(&resource_context())) else {
         return;
     };

@@ -7,7 +7,7 @@ use rand::SeedableRng;
 
 use crate::camera::Camera;
 use crate::config::RunConfig;
-use crate::derived::{derive_settings, DerivedSetting};
+use crate::derived::{derive_settings, DerivedSetting, PatchFacts};
 use crate::error::RunError;
 use crate::image::RgbImage;
 use crate::plugin::field::plain;
@@ -91,6 +91,14 @@ impl Session {
             })
             .map_err(in_config)?;
         let mut derived = derive_settings(&mut config, config_dir, &scene);
+        if let Some(extractor) = config.extractor.as_ref().filter(|_| config.segment.steps > 0) {
+            let patch = PatchFacts { patch_size: config.segment.patch_size, stride: config.segment.stride };
+            extractor.check_for(&patch).map_err(|e| RunError::Plugin {
+                config: source.to_path_buf(),
+                section: "extractor",
+                source: e,
+            })?;
+        }
         crate::train::memory_check::check(&config, source)?;
         let field = config.field.build(&scene.extent, config.seed).map_err(|source_error| RunError::Plugin {
             config: source.to_path_buf(),

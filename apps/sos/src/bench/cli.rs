@@ -72,7 +72,7 @@ pub fn run(args: BenchArgs, progress: bool) -> anyhow::Result<()> {
     match args.action {
         Some(BenchAction::Merge { dirs, out, readme }) => {
             let (report, failed) = merge::merge(&dirs, &out)?;
-            println!("merged {} folders into {}", dirs.len(), out.join("report.md").display());
+            say!("merged {} folders into {}", dirs.len(), out.join("report.md").display())?;
             if let Some(readme) = readme {
                 report::update_readme(&readme, &report, &out)?;
             }
@@ -132,12 +132,12 @@ fn run_file(file_path: &std::path::Path, args: &BenchArgs, progress: bool) -> an
     );
     if list {
         for r in &runs {
-            println!(
+            say!(
                 "{}  {}{}",
                 r.key.id,
                 &r.hash[..12],
                 r.skip.as_ref().map_or(String::new(), |s| format!("  skipped: {s}"))
-            );
+            )?;
         }
         let (to_run, stage1s) = if args.own_stage1 {
             let n = stage1_count(&runs).0;
@@ -145,10 +145,10 @@ fn run_file(file_path: &std::path::Path, args: &BenchArgs, progress: bool) -> an
         } else {
             stage1_count(&runs)
         };
-        println!(
+        say!(
             "{to_run} runs to run here, {stage1s} of them with a stage 1 of their own (the others share one) \
              in a fresh result folder"
-        );
+        )?;
         return Ok(());
     }
     let meta = BenchMeta {
@@ -161,20 +161,20 @@ fn run_file(file_path: &std::path::Path, args: &BenchArgs, progress: bool) -> an
     };
     let commit = record::commit_of(&file.dir());
     let tally = run_all(&runs, &out, &meta, curve_points, &commit, progress, !args.own_stage1)?;
-    println!(
+    say!(
         "{} ran, {} cached, {} skipped, {} failed; report in {}",
         tally.ran,
         tally.cached,
         tally.skipped,
         tally.failed.len(),
         out.join("report.md").display()
-    );
+    )?;
     if let Some(readme) = readme {
         let records = record::load_all(&out)?;
         let ids: std::collections::BTreeSet<&str> = runs.iter().map(|r| r.key.id.as_str()).collect();
         let mine: Vec<_> = records.into_iter().filter(|r| ids.contains(r.key.id.as_str())).collect();
         report::update_readme(&readme, &report::build(&mine, &meta), &out)?;
-        println!("updated {}", readme.display());
+        say!("updated {}", readme.display())?;
     }
     if !tally.failed.is_empty() {
         return Err(RunsFailed { ids: tally.failed, out }.into());

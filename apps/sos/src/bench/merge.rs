@@ -93,7 +93,7 @@ pub fn diff(a: &Path, b: &Path) -> anyhow::Result<()> {
         }
     }
     if differences.is_empty() {
-        println!("{} runs, identical metrics in {} and {}", ia.len(), a.display(), b.display());
+        say!("{} runs, identical metrics in {} and {}", ia.len(), a.display(), b.display())?;
         Ok(())
     } else {
         bail!(

@@ -20,7 +20,7 @@ pub fn run(prediction: &Path, reference: &Path, out: Option<&Path>) -> anyhow::R
     let binary = |m: &GrayImage| m.data.iter().map(|&v| u8::from(v >= 0.5)).collect::<Vec<_>>();
     let ari = adjusted_rand_index(&binary(&reference_resized), &binary(&pred))?;
     let show = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.4}"));
-    println!(
+    say!(
         "{} vs {} (resized {}x{} -> {}x{})",
         prediction.display(),
         reference.display(),
@@ -28,8 +28,8 @@ pub fn run(prediction: &Path, reference: &Path, out: Option<&Path>) -> anyhow::R
         reference_full.height,
         pred.width,
         pred.height
-    );
-    println!("IoU(FG) {}  IoU(BG) {}  mIoU {}  ARI {ari:.4}", show(iou.fg), show(iou.bg), show(iou.miou()));
+    )?;
+    say!("IoU(FG) {}  IoU(BG) {}  mIoU {}  ARI {ari:.4}", show(iou.fg), show(iou.bg), show(iou.miou()))?;
     if let Some(out) = out {
         let report = serde_json::json!({
             "prediction": prediction,

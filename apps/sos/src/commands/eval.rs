@@ -24,14 +24,14 @@ pub fn run(config: &Path, checkpoint: Option<&Path>) -> anyhow::Result<()> {
         "steps": session.step,
         "test": eval,
     });
-    println!("{:<24} {:>8} {:>8}", "view", "PSNR", "SSIM");
+    say!("{:<24} {:>8} {:>8}", "view", "PSNR", "SSIM")?;
     for v in &eval.views {
-        println!("{:<24} {:>8.2} {:>8.4}", v.view, v.psnr, v.ssim);
+        say!("{:<24} {:>8.2} {:>8.4}", v.view, v.psnr, v.ssim)?;
     }
-    super::train::print_image_eval(&eval);
+    super::train::print_image_eval(&eval)?;
     match loaded {
         Some(loaded) => {
-            println!();
+            say!()?;
             let extractor = saliency_extractor(&session)?;
             let masks = stage2::masks(&session, &loaded.head, extractor.as_deref(), false)?;
             report["stage2"] = stage2::report(&session, loaded.meta.steps, None, None, &masks);

@@ -213,7 +213,7 @@ pub fn run(config: &Path, options: &ExportOptions) -> anyhow::Result<()> {
     report["seconds"] = started.elapsed().as_secs_f64().into();
     let record = out.join("export.json");
     super::write_json(&record, &report).context("writing the export record")?;
-    println!("export record in {}", record.display());
+    say!("export record in {}", record.display())?;
     Ok(())
 }
 
@@ -276,16 +276,12 @@ impl Exporter<'_> {
         bar.finish_and_clear();
         let mut record = serde_json::json!({ "frames": path.len() });
         if frames {
-            println!(
-                "{} camera-path frames with masks overlaid in {}",
-                path.len(),
-                self.out.join(FRAMES_DIR).display()
-            );
+            say!("{} camera-path frames with masks overlaid in {}", path.len(), self.out.join(FRAMES_DIR).display())?;
             record["frames_dir"] = FRAMES_DIR.into();
         }
         if let Some(a) = animation {
             a.finish()?;
-            println!("animation of the camera path in {}", gif_path.display());
+            say!("animation of the camera path in {}", gif_path.display())?;
             record["gif"] = "path.gif".into();
             record["frame_delay_ms"] = (10 * animation::FRAME_DELAY_CS).into();
         }
@@ -315,7 +311,7 @@ impl Exporter<'_> {
         }
         bar.finish_and_clear();
         if held_out_masks {
-            println!("masks of {} held-out views in {}", scene.test.len(), self.out.join(MASK_FOLDERS.masks).display());
+            say!("masks of {} held-out views in {}", scene.test.len(), self.out.join(MASK_FOLDERS.masks).display())?;
         }
         Ok(fused)
     }
@@ -342,13 +338,13 @@ impl Exporter<'_> {
         if points.is_empty() {
             eprintln!("warning: no view's mask holds a rendered surface point; the point cloud is empty");
         }
-        println!(
+        say!(
             "point cloud of {} points (of {} foreground pixels in {} views) in {}",
             points.len(),
             fused.points.len(),
             self.session.scene.views.len(),
             path.display()
-        );
+        )?;
         Ok(serde_json::json!({
             "file": "points.ply",
             "points": points.len(),
@@ -393,7 +389,7 @@ impl Exporter<'_> {
         let (ply, obj) = (self.out.join("mesh.ply"), self.out.join("mesh.obj"));
         files::write_mesh_ply(&ply, &surface)?;
         files::write_mesh_obj(&obj, &surface)?;
-        println!(
+        say!(
             "mesh of {} vertices and {} triangles (density iso-level {iso:.4} on a {}x{}x{} grid of cell {:.4}) in {} \
              and {}",
             surface.positions.len(),
@@ -404,7 +400,7 @@ impl Exporter<'_> {
             grid.cell,
             ply.display(),
             obj.display()
-        );
+        )?;
         Ok(serde_json::json!({
             "files": ["mesh.ply", "mesh.obj"],
             "vertices": surface.positions.len(),
@@ -427,7 +423,7 @@ impl Exporter<'_> {
             bar.inc(1);
         }
         bar.finish_and_clear();
-        println!("masks of {} views ({source}) in {}", views.len(), self.out.join(MASK_FOLDERS.masks).display());
+        say!("masks of {} views ({source}) in {}", views.len(), self.out.join(MASK_FOLDERS.masks).display())?;
         Ok(serde_json::json!({
             "source": source,
             "views": views.iter().map(|(_, n)| *n).collect::<Vec<_>>(),

@@ -13,7 +13,7 @@ use sos_core::train::Session;
 use super::stage2;
 
 /// `sos render`: held-out views and the camera path, with masks when a head exists.
-pub fn run(config: &Path, checkpoint: Option<&Path>) -> anyhow::Result<()> {
+pub fn run(config: &Path, checkpoint: Option<&Path>, progress: bool) -> anyhow::Result<()> {
     let mut session = Session::open(config)?;
     // Refuses a folder another run uses, or one that cannot be written, before any work.
     let _claim = session.claim_run_dir()?;
@@ -28,18 +28,29 @@ pub fn run(config: &Path, checkpoint: Option<&Path>) -> anyhow::Result<()> {
         }
         None => {
             let eval = evaluate_views(&session, true)?;
-            println!("rendered {} held-out views to {}", eval.views.len(), session.run_dir.join("test").display());
+            say!("rendered {} held-out views to {}", eval.views.len(), session.run_dir.join("test").display())?;
         }
     }
     let inference = match &loaded {
         Some(l) => Some(MaskInference::new(&session, &l.head, extractor.as_deref())?),
         None => None,
     };
-    let path = session.scene.render_path.clone();
-    let bar = ProgressBar::new(path.len() as u64);
+    render_camera_path(&session, inference.as_ref(), progress)
+}
+
+/// Renders the scene's novel camera path into the run folder: colour frames, and with a head
+/// (`inference`) their masks and overlays from the same pass; a bar on a terminal when
+/// `progress`.
+pub(super) fn render_camera_path(
+    session: &Session,
+    inference: Option<&MaskInference>,
+    progress: bool,
+) -> anyhow::Result<()> {
+    let path = &session.scene.render_path;
+    let bar = if progress { ProgressBar::new(path.len() as u64) } else { ProgressBar::hidden() };
     for (i, cam) in path.iter().enumerate() {
         let name = format!("{i:04}");
-        match &inference {
+        match inference {
             // One render gives colour and logits.
             Some(inf) => {
                 let mask = inf.segment(cam, &name)?;
@@ -60,9 +71,9 @@ pub fn run(config: &Path, checkpoint: Option<&Path>) -> anyhow::Result<()> {
     }
     bar.finish_and_clear();
     if !path.is_empty() {
-        println!("rendered {} camera-path frames to {}", path.len(), session.run_dir.join("path").display());
+        say!("rendered {} camera-path frames to {}", path.len(), session.run_dir.join("path").display())?;
         if inference.is_some() {
-            println!("camera-path masks in {}", session.run_dir.join("path_masks").display());
+            say!("camera-path masks in {}", session.run_dir.join("path_masks").display())?;
         }
     }
     Ok(())

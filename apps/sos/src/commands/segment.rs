@@ -5,7 +5,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{bail, Context};
-use sos_core::segment::infer::saliency_extractor;
+use sos_core::segment::infer::{saliency_extractor, MaskInference};
 use sos_core::segment::store::load_with_head;
 use sos_core::segment::train::Segmenter;
 use sos_core::train::Session;
@@ -27,7 +27,7 @@ pub fn run(config: &Path, checkpoint: Option<&Path>, masks_only: bool, progress:
     };
     eprintln!("loaded {} (stage 1 at step {})", ckpt_path.display(), session.step);
     let metrics_path = session.run_dir.join("metrics.json");
-    let section = if masks_only {
+    let (section, trained) = if masks_only {
         let Some(loaded) = loaded else {
             bail!(
                 "checkpoint {} has no segmentation head; run `sos segment {}` without --masks-only to train one",
@@ -37,7 +37,7 @@ pub fn run(config: &Path, checkpoint: Option<&Path>, masks_only: bool, progress:
         };
         let extractor = saliency_extractor(&session)?;
         let masks = stage2::masks(&session, &loaded.head, extractor.as_deref(), true)?;
-        stage2::report(&session, loaded.meta.steps, None, None, &masks)
+        (stage2::report(&session, loaded.meta.steps, None, None, &masks), None)
     } else {
         if session.config.segment.steps == 0 {
             bail!(
@@ -48,8 +48,9 @@ pub fn run(config: &Path, checkpoint: Option<&Path>, masks_only: bool, progress:
         }
         let seg = Segmenter::build(&session)?;
         let s2 = stage2::train(&mut session, seg, progress)?;
-        let masks = stage2::masks(&session, &s2.seg.head, Some(s2.seg.teacher.extractor()), true)?;
-        stage2::report(&session, s2.seg.step, Some(s2.seconds), Some(&s2.stats), &masks)
+        let extractor = Some(s2.seg.teacher.extractor());
+        let masks = stage2::masks(&session, &s2.seg.head, extractor, session.config.render.test_views)?;
+        (stage2::report(&session, s2.seg.step, Some(s2.seconds), Some(&s2.stats), &masks), Some(s2))
     };
     // Keep the stage-1 record of `sos train` and replace its stage-2 part.
     let mut report = std::fs::read(&metrics_path)
@@ -67,6 +68,10 @@ pub fn run(config: &Path, checkpoint: Option<&Path>, masks_only: bool, progress:
     report["stage2"] = section;
     report["segment_seconds"] = started.elapsed().as_secs_f64().into();
     super::write_json(&metrics_path, &report).context("writing metrics")?;
-    println!("metrics in {}", metrics_path.display());
+    say!("metrics in {}", metrics_path.display())?;
+    if let Some(s2) = trained.filter(|_| session.config.render.camera_path) {
+        let inference = MaskInference::new(&session, &s2.seg.head, Some(s2.seg.teacher.extractor()))?;
+        super::render::render_camera_path(&session, Some(&inference), progress)?;
+    }
     Ok(())
 }

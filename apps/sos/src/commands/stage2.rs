@@ -52,14 +52,14 @@ pub fn masks(
 ) -> anyhow::Result<MaskEval> {
     let inference = MaskInference::new(session, head, extractor)?;
     let eval = evaluate_masks(session, &inference, write)?;
-    print!("{}", eval.to_table());
+    super::write_stdout(&eval.to_table())?;
     if write {
-        println!(
+        say!(
             "masks of {} held-out views in {} ({:.1} s)",
             eval.views.len(),
             session.run_dir.join(sos_core::segment::evaluate::MASKS_DIR).display(),
             eval.seconds
-        );
+        )?;
     }
     Ok(eval)
 }

@@ -5,6 +5,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::Context;
+use sos_core::segment::infer::MaskInference;
 use sos_core::segment::train::Segmenter;
 use sos_core::train::evaluate::{evaluate_views, overfitting_warning, ImageEval};
 use sos_core::train::face_pileup::face_pileup_warning;
@@ -59,19 +60,16 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
     if let Some(faces) = stats.faces {
         report["stage1_faces"] = serde_json::to_value(faces)?;
     }
-    match segmenter {
+    let trained = match segmenter {
         None => {
             let eval_started = Instant::now();
             let eval = evaluate_views(&session, session.config.render.test_views)?;
             report["timing"]["stage1_eval_seconds"] = eval_started.elapsed().as_secs_f64().into();
-            print_image_eval(&eval);
+            print_image_eval(&eval)?;
             record_warnings(&stats, &eval, &mut report);
-            println!(
-                "render speed {:.0} rays/s; outputs in {}",
-                eval.render_rays_per_second,
-                session.run_dir.display()
-            );
+            say!("render speed {:.0} rays/s; outputs in {}", eval.render_rays_per_second, session.run_dir.display())?;
             report["test"] = serde_json::to_value(&eval)?;
+            None
         }
         Some(seg) => {
             // Written now so stage-1 results survive a failing stage 2.
@@ -79,21 +77,30 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
             let s2 = stage2::train(&mut session, seg, progress)?;
             // Mask inference renders and measures the held-out colour as well, so the field's
             // image quality comes from that pass instead of a second rendering of the views.
-            let masks = stage2::masks(&session, &s2.seg.head, Some(s2.seg.teacher.extractor()), true)?;
+            let extractor = Some(s2.seg.teacher.extractor());
+            let masks = stage2::masks(&session, &s2.seg.head, extractor, session.config.render.test_views)?;
             let camera = |i: usize| &session.scene.views[i].camera;
             let rays = session.scene.test.iter().map(|&i| camera(i).width as usize * camera(i).height as usize).sum();
             let eval = ImageEval::from_report(&masks.image, rays, masks.seconds);
-            print_image_eval(&eval);
+            print_image_eval(&eval)?;
             record_warnings(&stats, &eval, &mut report);
             report["test"] = serde_json::to_value(&eval)?;
             report["stage2"] = stage2::report(&session, s2.seg.step, Some(s2.seconds), Some(&s2.stats), &masks);
             report["timing"]["stage2_seconds"] = s2.seconds.into();
             report["timing"]["masks_seconds"] = masks.seconds.into();
+            Some(s2)
         }
-    }
+    };
     report["timing"]["total_seconds"] = started.elapsed().as_secs_f64().into();
     super::write_json(&metrics_path, &report).context("writing metrics")?;
-    println!("metrics in {}", metrics_path.display());
+    say!("metrics in {}", metrics_path.display())?;
+    if session.config.render.camera_path {
+        let inference = match &trained {
+            Some(s2) => Some(MaskInference::new(&session, &s2.seg.head, Some(s2.seg.teacher.extractor()))?),
+            None => None,
+        };
+        super::render::render_camera_path(&session, inference.as_ref(), progress)?;
+    }
     Ok(())
 }
 
@@ -116,24 +123,22 @@ fn record_warnings(stats: &StepStats, eval: &ImageEval, report: &mut serde_json:
 }
 
 /// The held-out quality line (a notice instead when the scene holds out no views).
-pub(super) fn print_image_eval(eval: &ImageEval) {
+pub(super) fn print_image_eval(eval: &ImageEval) -> anyhow::Result<()> {
     if eval.views.is_empty() {
-        println!("no held-out views: PSNR and SSIM not measured (set the scene's hold-out, e.g. `hold_out_every`)");
-        return;
+        return say!("no held-out views: PSNR and SSIM not measured (set the scene's hold-out, e.g. `hold_out_every`)");
     }
     if ![eval.psnr, eval.psnr_mean_per_view, eval.ssim].iter().all(|v| v.is_finite()) {
-        println!(
+        return say!(
             "held-out PSNR and SSIM not measured: the field renders non-finite colours on {} views \
              (it diverged; retrain with a lower learning rate)",
             eval.views.len()
         );
-        return;
     }
-    println!(
+    say!(
         "held-out PSNR {:.2} dB (mean of per-view {:.2} dB), SSIM {:.4}, over {} views",
         eval.psnr,
         eval.psnr_mean_per_view,
         eval.ssim,
         eval.views.len()
-    );
+    )
 }
