@@ -26,7 +26,8 @@
 //! other clusters that rise clearly off the support planes and touch the mask join it
 //! (`masks.attached_parts`: a dark base clustered with its ground). A mask
 //! that still covers most of the image border has its cluster split again
-//! ([`crate::segment::border_split`]).
+//! ([`crate::segment::border_split`]). Last, the pixels near the mask's outline go to the side
+//! whose colours they match (`masks.colour_band`, [`crate::segment::colour_refine`]).
 
 use crate::camera::{axpy, dot, normalize, sub, Camera, Vec3};
 use crate::config::{ForegroundRule, KeepRegions, LogitSource, MaskConfig, MaskDepth};
@@ -43,6 +44,7 @@ use crate::segment::cleanup::{
     keep_attached_parts, keep_nearby_parts, keep_seeded_regions, DepthContinuity, NearbyParts,
 };
 use crate::segment::cluster_space::{cluster_view, unit_rows};
+use crate::segment::colour_refine::{band_pixels, refine_by_colour};
 use crate::segment::diagnostics::{evidence_image, MaskEvidence};
 use crate::segment::head::SegHead;
 use crate::segment::head_pass;
@@ -557,6 +559,10 @@ impl<'a> MaskInference<'a> {
                 break;
             }
             (labels, k, fg, foreground, share) = (split, k + 1, split_fg, split_foreground, split_share);
+        }
+        if masks.keep == KeepRegions::Connected {
+            let band = band_pixels(masks.colour_band, w, h);
+            foreground = refine_by_colour(&r.rgb, &foreground, band, masks.colour_margin);
         }
         // A view that renders no point at all (every ray empty) shows no object; the
         // clusters of its constant logits would otherwise make all of it foreground.

@@ -4,6 +4,7 @@
 pub mod border_split;
 pub mod cleanup;
 pub mod cluster_space;
+pub mod colour_refine;
 pub mod defaults;
 pub mod diagnostics;
 pub mod evaluate;
