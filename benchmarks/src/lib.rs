@@ -81,7 +81,9 @@ impl GroupResults {
     pub fn median(&self, function: &str) -> Option<f64> {
         let path = self.dir.join(function).join("new").join("estimates.json");
         let modified = std::fs::metadata(&path).and_then(|m| m.modified()).ok()?;
-        if epoch_seconds(modified) < self.started_s {
+        // A second's slack: file times come from the kernel's coarse clock, which may lag the
+        // clock the group read when it started, across a second's boundary.
+        if epoch_seconds(modified) + 1 < self.started_s {
             return None;
         }
         let estimates: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).ok()?).ok()?;

@@ -24,8 +24,9 @@ pub const CORE_MARGIN: u32 = 2;
 pub const MIN_CORE_PIXELS: usize = 20;
 
 /// Moves the pixels within `band` steps (4-connected) of the mask's outline to the side whose
-/// colour histogram gives their colour the higher likelihood; a pixel joins the mask only
-/// when that log-likelihood ratio exceeds `margin` (0: the likelier side wins). `rgb` is the
+/// colour histogram gives their colours the higher likelihood; a pixel joins the mask only
+/// when the log-likelihood ratio, averaged over its 3x3 neighbourhood, exceeds `margin` (0: the
+/// likelier side wins). `rgb` is the
 /// view's rendered colour, `mask` its row-major foreground. Returns the refined mask.
 pub fn refine_by_colour(rgb: &RgbImage, mask: &[bool], band: u32, margin: f32) -> Vec<bool> {
     let (w, h) = (rgb.width, rgb.height);
@@ -61,7 +62,29 @@ pub fn refine_by_colour(rgb: &RgbImage, mask: &[bool], band: u32, margin: f32) -
     let (total_in, total_out) = ((n_inside + bins) as f32, (n_outside + bins) as f32);
     let ratio =
         |code: usize| ((inside[code] as f32 + 1.0) / total_in).ln() - ((outside[code] as f32 + 1.0) / total_out).ln();
-    mask.iter().enumerate().map(|(i, &f)| if across[i] <= band { ratio(codes[i]) > margin } else { f }).collect()
+    // Each pixel weighs its 3x3 neighbourhood's colour evidence: a lone pixel of a colour the two
+    // sides share does not flip on its own, so thin parts and colour clashes stay in one piece.
+    let evidence: Vec<f32> = codes.iter().map(|&c| ratio(c)).collect();
+    let smoothed = box_mean_3x3(&evidence, w, h);
+    mask.iter().enumerate().map(|(i, &f)| if across[i] <= band { smoothed[i] > margin } else { f }).collect()
+}
+
+/// The mean of each pixel's 3x3 neighbourhood (the pixels inside the image).
+fn box_mean_3x3(values: &[f32], w: usize, h: usize) -> Vec<f32> {
+    let mut out = vec![0.0; values.len()];
+    for y in 0..h {
+        for x in 0..w {
+            let (mut sum, mut n) = (0.0, 0.0);
+            for yy in y.saturating_sub(1)..(y + 2).min(h) {
+                for xx in x.saturating_sub(1)..(x + 2).min(w) {
+                    sum += values[yy * w + xx];
+                    n += 1.0;
+                }
+            }
+            out[y * w + x] = sum / n;
+        }
+    }
+    out
 }
 
 /// The band width in pixels for a view: `fraction` of its diagonal, at least one pixel when
@@ -140,7 +163,7 @@ mod tests {
         let rgb = image(w, h, |x, y| if object(x, y) { ORANGE } else { GREEN });
         let spilled: Vec<bool> =
             (0..w * h).map(|i| (20..44).contains(&(i % w)) && (20..44).contains(&(i / w))).collect();
-        let refined = refine_by_colour(&rgb, &spilled, 6, 1.0);
+        let refined = refine_by_colour(&rgb, &spilled, 6, 0.0);
         let exact: Vec<bool> = (0..w * h).map(|i| object(i % w, i / w)).collect();
         assert_eq!(refined, exact);
     }
@@ -158,9 +181,15 @@ mod tests {
             _ => GREEN,
         });
         let holed: Vec<bool> = (0..w * h).map(|i| object(i % w, i / w) && !(30..33).contains(&(i / w))).collect();
-        let refined = refine_by_colour(&rgb, &holed, 3, 1.0);
-        let exact: Vec<bool> = (0..w * h).map(|i| object(i % w, i / w)).collect();
-        assert_eq!(refined, exact);
+        let refined = refine_by_colour(&rgb, &holed, 3, 0.0);
+        for y in 30..33 {
+            for x in 17..47 {
+                assert!(refined[y * w + x], "pixel ({x}, {y}) of a left-out stripe stays out");
+            }
+        }
+        // Nothing of the green around the object joins.
+        let green_joined = (0..w * h).filter(|&i| refined[i] && !object(i % w, i / w)).count();
+        assert_eq!(green_joined, 0);
     }
 
     #[test]
@@ -193,6 +222,27 @@ mod tests {
         assert_eq!(band_pixels(0.025, 160, 120), 5);
         assert_eq!(band_pixels(0.0001, 16, 12), 1);
         assert_eq!(band_pixels(0.0, 504, 378), 0);
+    }
+
+    #[test]
+    fn one_pixel_of_a_shared_colour_does_not_flip_alone() {
+        // An orange square on green with a single green pixel inside the object, next to its
+        // outline: its neighbours' evidence keeps it in the mask.
+        let (w, h) = (48, 48);
+        let object = |x: usize, y: usize| (12..36).contains(&x) && (12..36).contains(&y);
+        let rgb = image(w, h, |x, y| if object(x, y) && (x, y) != (14, 20) { ORANGE } else { GREEN });
+        let exact: Vec<bool> = (0..w * h).map(|i| object(i % w, i / w)).collect();
+        let refined = refine_by_colour(&rgb, &exact, 4, 0.5);
+        assert!(refined[20 * w + 14], "the lone green pixel left the mask");
+    }
+
+    #[test]
+    fn box_means_cover_the_pixels_inside_the_image() {
+        let values = [1.0, 2.0, 3.0, 4.0];
+        // Every 3x3 window of a 2x2 image holds all four pixels.
+        assert_eq!(box_mean_3x3(&values, 2, 2), vec![2.5; 4]);
+        let row = box_mean_3x3(&[0.0, 3.0, 6.0], 3, 1);
+        assert_eq!(row, vec![1.5, 3.0, 4.5]);
     }
 
     #[test]
