@@ -5,9 +5,9 @@
 //! segmentation input is smooth, so a mask's outline wanders into whatever touches the object
 //! (a leaf behind a flower, a shadow on the ground) and drops stripes of a texture. Two colour
 //! histograms, one of the mask's interior and one of the background's (both away from the
-//! outline), decide each pixel near the outline by their log-likelihood ratio, as GrabCut's
-//! colour models do, without its graph cut: only the band moves, so a colour shared by object
-//! and background cannot spread across the image.
+//! outline), decide each pixel near the outline by their log-likelihood ratio, averaged over the
+//! pixel's 3x3 neighbourhood, as GrabCut's colour models do, without its graph cut: only the
+//! band moves, so a colour shared by object and background cannot spread across the image.
 
 use crate::image::RgbImage;
 
@@ -26,8 +26,8 @@ pub const MIN_CORE_PIXELS: usize = 20;
 /// Moves the pixels within `band` steps (4-connected) of the mask's outline to the side whose
 /// colour histogram gives their colours the higher likelihood; a pixel joins the mask only
 /// when the log-likelihood ratio, averaged over its 3x3 neighbourhood, exceeds `margin` (0: the
-/// likelier side wins). `rgb` is the
-/// view's rendered colour, `mask` its row-major foreground. Returns the refined mask.
+/// likelier side wins). `rgb` is the view's rendered colour, `mask` its row-major foreground.
+/// Returns the refined mask.
 pub fn refine_by_colour(rgb: &RgbImage, mask: &[bool], band: u32, margin: f32) -> Vec<bool> {
     let (w, h) = (rgb.width, rgb.height);
     if band == 0 || mask.len() != w * h || rgb.data.len() != w * h * 3 {
