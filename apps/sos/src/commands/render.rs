@@ -38,6 +38,23 @@ pub fn run(config: &Path, checkpoint: Option<&Path>, progress: bool) -> anyhow::
     render_camera_path(&session, inference.as_ref(), progress)
 }
 
+/// When `render.camera_path` is set: the camera path at the end of a training command, with
+/// masks from the head stage 2 just trained (`trained`), colour alone without one.
+pub(super) fn camera_path_after_training(
+    session: &Session,
+    trained: Option<&super::stage2::Stage2>,
+    progress: bool,
+) -> anyhow::Result<()> {
+    if !session.config.render.camera_path {
+        return Ok(());
+    }
+    let inference = match trained {
+        Some(s2) => Some(MaskInference::new(session, &s2.seg.head, Some(s2.seg.teacher.extractor()))?),
+        None => None,
+    };
+    render_camera_path(session, inference.as_ref(), progress)
+}
+
 /// Renders the scene's novel camera path into the run folder: colour frames, and with a head
 /// (`inference`) their masks and overlays from the same pass; a bar on a terminal when
 /// `progress`.

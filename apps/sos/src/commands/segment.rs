@@ -5,7 +5,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{bail, Context};
-use sos_core::segment::infer::{saliency_extractor, MaskInference};
+use sos_core::segment::infer::saliency_extractor;
 use sos_core::segment::store::load_with_head;
 use sos_core::segment::train::Segmenter;
 use sos_core::train::Session;
@@ -69,9 +69,9 @@ pub fn run(config: &Path, checkpoint: Option<&Path>, masks_only: bool, progress:
     report["segment_seconds"] = started.elapsed().as_secs_f64().into();
     super::write_json(&metrics_path, &report).context("writing metrics")?;
     say!("metrics in {}", metrics_path.display())?;
-    if let Some(s2) = trained.filter(|_| session.config.render.camera_path) {
-        let inference = MaskInference::new(&session, &s2.seg.head, Some(s2.seg.teacher.extractor()))?;
-        super::render::render_camera_path(&session, Some(&inference), progress)?;
+    // Inference alone (`--masks-only`) trains nothing, so it renders no path.
+    match &trained {
+        Some(s2) => super::render::camera_path_after_training(&session, Some(s2), progress),
+        None => Ok(()),
     }
-    Ok(())
 }

@@ -5,7 +5,6 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::Context;
-use sos_core::segment::infer::MaskInference;
 use sos_core::segment::train::Segmenter;
 use sos_core::train::evaluate::{evaluate_views, overfitting_warning, ImageEval};
 use sos_core::train::face_pileup::face_pileup_warning;
@@ -94,14 +93,7 @@ pub fn run(config: &Path, resume: bool, progress: bool) -> anyhow::Result<()> {
     report["timing"]["total_seconds"] = started.elapsed().as_secs_f64().into();
     super::write_json(&metrics_path, &report).context("writing metrics")?;
     say!("metrics in {}", metrics_path.display())?;
-    if session.config.render.camera_path {
-        let inference = match &trained {
-            Some(s2) => Some(MaskInference::new(&session, &s2.seg.head, Some(s2.seg.teacher.extractor()))?),
-            None => None,
-        };
-        super::render::render_camera_path(&session, inference.as_ref(), progress)?;
-    }
-    Ok(())
+    super::render::camera_path_after_training(&session, trained.as_ref(), progress)
 }
 
 /// Prints (and records in the metrics) warnings about stage 1: content cut off by the box,
