@@ -306,6 +306,8 @@ fn missing_or_foreign_weights_are_refused_helpfully() {
     for (cfg, key) in [
         (DinoVitConfig { batch: 0, ..tiny_config(&p) }, "batch"),
         (DinoVitConfig { input_size: 4, ..tiny_config(&p) }, "input_size"),
+        // Within the general range, but smaller than one of this model's 16-px patches.
+        (DinoVitConfig { input_size: 8, ..tiny_config(&p) }, "input_size"),
         (DinoVitConfig { heads: Some(0), ..tiny_config(&p) }, "heads"),
     ] {
         assert!(

@@ -129,6 +129,18 @@ fn truncated_corrupt_and_hostile_legacy_files_are_errors_not_panics() {
     // Another pickle than torch.save's.
     let err = StateDict::from_bytes(b"\x80\x02K\x07.".to_vec(), name).unwrap_err().to_string();
     assert!(err.contains("magic number"), "{err}");
+    // A NaN weight (a diverged run's) is named with its tensor when read.
+    let sd = StateDict::from_bytes(good.clone(), name).unwrap();
+    let (tensor, entry) = sd
+        .names()
+        .map(|n| (n.to_string(), sd.entry(n).unwrap().clone()))
+        .find(|(_, e)| e.dtype == DType::F32 && e.numel() > 0)
+        .expect("a float tensor");
+    let mut nan = good.clone();
+    let at = entry.storage.start + 4 * entry.offset;
+    nan[at..at + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    let err = StateDict::from_bytes(nan, name).unwrap().f32(&tensor).unwrap_err().to_string();
+    assert!(err.contains(&format!("`{tensor}`")) && err.contains("NaN") && err.contains("damaged"), "{err}");
 }
 
 /// The BatchNorm `<prefix>.bn.*` of the layers fixture.

@@ -144,6 +144,18 @@ fn read_split(root: &Path, split: &str) -> Result<(f64, Vec<FrameFile>), Dataset
             if m.iter().flatten().any(|v| !v.is_finite()) {
                 return Err(invalid(&path, format!("frame {i}: transform_matrix has NaN or inf")));
             }
+            // A transposed (column-major) matrix keeps an orthonormal 3x3 block but carries
+            // its translation in the last row, which would put every camera at the origin.
+            if m[3].iter().zip([0.0, 0.0, 0.0, 1.0]).any(|(a, b)| (a - b).abs() > 1e-6) {
+                return Err(invalid(
+                    &path,
+                    format!(
+                        "frame {i}: the last row of transform_matrix is {:?}, not [0, 0, 0, 1]; \
+                         write the camera-to-world matrix row by row (is it transposed?)",
+                        m[3]
+                    ),
+                ));
+            }
             let mut cam_to_world = [[0.0f32; 4]; 3];
             for r in 0..3 {
                 for c in 0..4 {
@@ -189,8 +201,7 @@ fn frame_camera(width: usize, height: usize, angle: f64, cam_to_world: [[f32; 4]
 /// Reads an image, compositing its alpha (if any) on `background`; also returns the alpha
 /// channel (all ones for images without one).
 fn load_composited(path: &Path, background: f32) -> Result<(RgbImage, Vec<f32>), DatasetError> {
-    let img = image::open(path)
-        .map_err(|e| invalid(path, format!("cannot decode image ({e}); re-export it as PNG or JPEG")))?;
+    let img = sos_core::image::open_image(path, "image", "; re-export it as PNG or JPEG")?;
     let rgba = img.to_rgba32f();
     let (w, h) = rgba.dimensions();
     if w == 0 || h == 0 {

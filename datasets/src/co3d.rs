@@ -280,13 +280,13 @@ fn choose_sequence(
         }
         return Ok(s.clone());
     }
-    let score = |n: &str| {
-        seqs.iter()
-            .find(|s| s.sequence_name == n)
-            .and_then(|s| s.viewpoint_quality_score)
-            .filter(|v| v.is_finite())
-            .unwrap_or(f64::NEG_INFINITY)
-    };
+    // One pass over the annotations (the first of a name counts): a lookup per sequence
+    // name would scan them all for each of possibly millions of names.
+    let mut scores = std::collections::HashMap::with_capacity(seqs.len());
+    for s in seqs {
+        scores.entry(s.sequence_name.as_str()).or_insert(s.viewpoint_quality_score);
+    }
+    let score = |n: &str| scores.get(n).copied().flatten().filter(|v: &f64| v.is_finite()).unwrap_or(f64::NEG_INFINITY);
     let mut best = names[0];
     for &n in &names[1..] {
         if score(n) > score(best) {

@@ -278,8 +278,21 @@ pub fn parse_images_txt(path: &Path, text: &str) -> Result<Vec<ColmapImage>, Dat
             camera_id: int(t[8], "CAMERA_ID")?,
             name: t[9].to_string(),
         });
-        // The POINTS2D line follows every image line (COLMAP's own reader takes it as is).
-        lines.next();
+        // The POINTS2D line follows every image line: X Y POINT3D_ID triples, possibly none.
+        // A file written with one line per image would otherwise lose every second image.
+        if let Some((p, points)) = lines.next() {
+            let fields = points.split_whitespace().count();
+            if fields % 3 != 0 {
+                return Err(invalid(
+                    path,
+                    format!(
+                        "line {}: expected the POINTS2D line of the image on {what} (X Y POINT3D_ID triples, \
+                         or an empty line), got {fields} fields; images.txt holds two lines per image",
+                        p + 1
+                    ),
+                ));
+            }
+        }
     }
     Ok(images)
 }

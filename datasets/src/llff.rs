@@ -333,6 +333,13 @@ pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
             format!("config key `render_path_views` must be in 1..=10000, got {}", cfg.render_path_views),
         ));
     }
+    // A negative factor (a sign slip) would silently mean "no scaling", as 0 does.
+    if cfg.bd_factor < 0.0 {
+        return Err(invalid(
+            root,
+            format!("config key `bd_factor` must be 0 (no scaling) or positive, got {}", cfg.bd_factor),
+        ));
+    }
     let npy_path = root.join("poses_bounds.npy");
     let geo = read_llff_geometry(cfg, &npy_path)?;
     let source = image_source(cfg, root, geo.hwf)?;
@@ -384,6 +391,24 @@ pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
                 ),
             ));
         }
+    }
+    // The focal length is the poses' divided by the folder's factor; images of another scale
+    // (a copy put in the wrong images_N) would get a focal length off by that ratio.
+    let (expect_w, expect_h) = (geo.hwf[1] / source.factor, geo.hwf[0] / source.factor);
+    let off = |got: usize, want: f64| (got as f64 - want).abs() > (0.01 * want).max(1.0);
+    if off(width, expect_w) || off(height, expect_h) {
+        return Err(invalid(
+            &files[0],
+            format!(
+                "image is {width}x{height}, but {} gives {}x{} full-resolution photographs, so a \
+                 factor of {} means {expect_w:.0}x{expect_h:.0}; put images of that size in {} or fix H, W",
+                npy_path.display(),
+                geo.hwf[1],
+                geo.hwf[0],
+                source.factor,
+                source.dir.display()
+            ),
+        ));
     }
     let poses = &geo.poses;
     let focal = geo.hwf[2] / source.factor;
@@ -595,6 +620,8 @@ mod tests {
                 assert!((x - y).abs() < 1e-5);
             }
         }
+        let err = load_llff(&LlffConfig { factor: Some(4), bd_factor: -0.75, ..cfg(&dir) }, &dir).unwrap_err();
+        assert!(err.to_string().contains("`bd_factor`"), "{err}");
         std::fs::remove_dir_all(dir).ok();
     }
 
@@ -669,6 +696,16 @@ mod tests {
 
         let err = open(&LlffConfig { factor: Some(3), ..cfg(&dir) });
         assert!(err.contains("images_3") && err.contains("missing"), "{err}");
+
+        // images_8's photographs put where factor 4 looks: the focal length would be halved.
+        std::fs::create_dir_all(dir.join("images_4")).unwrap();
+        for entry in std::fs::read_dir(dir.join("images_8")).unwrap() {
+            let path = entry.unwrap().path();
+            std::fs::copy(&path, dir.join("images_4").join(path.file_name().unwrap())).unwrap();
+        }
+        let err = open(&LlffConfig { factor: Some(4), ..cfg(&dir) });
+        assert!(err.contains("images_4") && err.contains("factor of 4"), "{err}");
+        std::fs::remove_dir_all(dir.join("images_4")).unwrap();
 
         std::fs::write(dir.join("images_8/view_004.png"), b"not a png").unwrap();
         let err = open(&cfg(&dir));

@@ -50,6 +50,10 @@ impl Intrinsics {
     }
 }
 
+/// The smallest focal length [`checked_camera`] accepts, as a share of the image's size: a
+/// tenth, a field of view of 157°, wider than any rectilinear lens.
+pub const MIN_FOCAL_SHARE: f64 = 0.1;
+
 /// A camera from `pose` (OpenGL axes) and `k`, checked; errors name `file` and `what`
 /// (e.g. "image 12") and say what to fix.
 pub fn checked_camera(file: &Path, what: &str, pose: &Pose, k: &Intrinsics) -> Result<Camera, DatasetError> {
@@ -62,6 +66,28 @@ pub fn checked_camera(file: &Path, what: &str, pose: &Pose, k: &Intrinsics) -> R
     }
     if k.width == 0 || k.height == 0 {
         return Err(invalid(file, format!("{what}: zero image size {}x{}", k.width, k.height)));
+    }
+    // Intrinsics written in normalised units (focal ~1, principal point ~0.5) pass as a
+    // pinhole of almost 180° whose axis meets the image's corner: refused, not trained on.
+    let (w, h) = (k.width as f64, k.height as f64);
+    if k.fx < MIN_FOCAL_SHARE * w || k.fy < MIN_FOCAL_SHARE * h {
+        return Err(invalid(
+            file,
+            format!(
+                "{what}: focal length {} x {} px is under a tenth of the {}x{} image (a field of view \
+                 over 157°); are the intrinsics normalised? Give them in pixels",
+                k.fx, k.fy, k.width, k.height
+            ),
+        ));
+    }
+    if !((-w..=2.0 * w).contains(&k.cx) && (-h..=2.0 * h).contains(&k.cy)) {
+        return Err(invalid(
+            file,
+            format!(
+                "{what}: principal point ({}, {}) lies far outside the {}x{} image; give it in pixels",
+                k.cx, k.cy, k.width, k.height
+            ),
+        ));
     }
     let cam = pose::to_camera_general(pose, k.width, k.height, k.fx, k.fy, k.cx, k.cy);
     cam.validate().map_err(|e| invalid(file, format!("{what}: {e}; fix the intrinsics or the pose")))?;

@@ -292,6 +292,12 @@ fn malformed_camera_files() {
         ),
         (Format::TanksTemples, format!("train/pose/{VIEW}.txt"), b"".to_vec(), vec!["view_003.txt", "0 numbers"]),
         (
+            Format::TanksTemples,
+            format!("train/intrinsics/{VIEW}.txt"),
+            b"1.1 0 0.5 0\n0 1.1 0.5 0\n0 0 1 0\n0 0 0 1\n".to_vec(),
+            vec!["view_003.txt", "normalised"],
+        ),
+        (
             Format::Co3d,
             format!("{CO3D_CATEGORY}/frame_annotations.jgz"),
             b"\x1f\x8b\x08\x00 garbage".to_vec(),
@@ -342,6 +348,39 @@ fn malformed_camera_files() {
     let dir = fresh(Format::ColmapBin, &s, "missing-images-bin");
     std::fs::remove_file(dir.join("sparse/0/images.bin")).unwrap();
     expect_err(Format::ColmapBin, &dir, "no images.bin", &["images.bin", "missing"]);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Pose files that parse but mean something else than they seem are refused, not loaded.
+#[test]
+fn transposed_mirrored_and_one_line_pose_files() {
+    let s = scene();
+    let edit_first_matrix = |dir: &Path, f: &dyn Fn(&mut Vec<Vec<f64>>)| {
+        let path = dir.join("transforms_train.json");
+        let mut json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+        let m = &mut json["frames"][0]["transform_matrix"];
+        let mut rows: Vec<Vec<f64>> = serde_json::from_value(m.clone()).unwrap();
+        f(&mut rows);
+        *m = serde_json::to_value(rows).unwrap();
+        std::fs::write(&path, serde_json::to_string(&json).unwrap()).unwrap();
+    };
+    // Column-major: the translation lands in the last row.
+    let dir = fresh(Format::Blender, &s, "transposed");
+    edit_first_matrix(&dir, &|m| *m = (0..4).map(|c| (0..4).map(|r| m[r][c]).collect()).collect());
+    expect_err(Format::Blender, &dir, "transposed matrix", &["transforms_train.json", "frame 0", "transposed"]);
+    std::fs::remove_dir_all(&dir).ok();
+    // One axis flipped: orthonormal, but every ray mirrored.
+    let dir = fresh(Format::Blender, &s, "mirrored");
+    edit_first_matrix(&dir, &|m| (0..3).for_each(|r| m[r][0] = -m[r][0]));
+    expect_err(Format::Blender, &dir, "mirrored matrix", &["transforms_train.json", "frame 0", "reflection"]);
+    std::fs::remove_dir_all(&dir).ok();
+    // COLMAP's images.txt written with one line per image (no POINTS2D lines): every second
+    // image would be read as the points of the one before.
+    let dir = fresh(Format::ColmapTxt, &s, "one-line");
+    edit(&dir.join("sparse/0/images.txt"), |t| {
+        t.lines().filter(|l| !l.trim().is_empty()).map(|l| format!("{l}\n")).collect()
+    });
+    expect_err(Format::ColmapTxt, &dir, "no POINTS2D lines", &["images.txt", "POINTS2D", "line 5"]);
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -132,7 +132,8 @@ impl Camera {
         Camera { width, height, fx: focal, fy: focal, cx: width as f32 / 2.0, cy: height as f32 / 2.0, cam_to_world }
     }
 
-    /// Checks that the pose is finite and the rotation orthonormal; returns what is wrong.
+    /// Checks that the pose is finite and the rotation a proper rotation (orthonormal, not a
+    /// reflection); returns what is wrong.
     pub fn validate(&self) -> Result<(), String> {
         if self.width == 0 || self.height == 0 {
             return Err(format!("zero image size {}x{}", self.width, self.height));
@@ -156,6 +157,13 @@ impl Camera {
                     return Err("rotation is not orthonormal (singular or scaled pose)".into());
                 }
             }
+        }
+        // An orthonormal matrix with determinant −1 mirrors every ray: one axis was flipped
+        // (often in a conversion between OpenCV and OpenGL axes).
+        let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+        if det < 0.0 {
+            return Err("rotation is a reflection (determinant −1); flip one camera axis".into());
         }
         Ok(())
     }
@@ -225,6 +233,18 @@ mod tests {
         let d = cam.direction(px[0], px[1]);
         let to_q = normalize(sub(q, cam.origin()));
         assert!(dot(d, to_q) > 1.0 - 1e-6);
+    }
+
+    #[test]
+    fn a_mirrored_pose_is_refused() {
+        let mut cam = Camera::look_at([0.0, -3.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], 64, 48, 50.0);
+        cam.validate().unwrap();
+        // Negating one axis keeps the rotation orthonormal but mirrors every ray.
+        for r in 0..3 {
+            cam.cam_to_world[r][2] = -cam.cam_to_world[r][2];
+        }
+        let err = cam.validate().unwrap_err();
+        assert!(err.contains("reflection"), "{err}");
     }
 
     #[test]

@@ -564,6 +564,10 @@ impl RunConfig {
         if g.steps > MAX_STEPS {
             return Err(invalid("segment.steps", &format!("must be at most {MAX_STEPS}")));
         }
+        // Mask inference of a checkpoint's head reads it too, whatever `steps` says.
+        if !(0.0..1.0).contains(&g.weight_threshold) {
+            return Err(invalid("segment.weight_threshold", "must be in [0, 1)"));
+        }
         if g.steps > 0 {
             // A patch's negatives are the other patches of its step: one alone has none.
             if !(2..=MAX_PATCHES).contains(&g.patches) {
@@ -581,9 +585,6 @@ impl RunConfig {
             }
             if !(g.final_lr_factor > 0.0 && g.final_lr_factor <= 1.0) {
                 return Err(invalid("segment.final_lr_factor", "must be in (0, 1]"));
-            }
-            if !(0.0..1.0).contains(&g.weight_threshold) {
-                return Err(invalid("segment.weight_threshold", "must be in [0, 1)"));
             }
             if !(g.photometric_weight >= 0.0 && g.photometric_weight.is_finite()) {
                 return Err(invalid("segment.photometric_weight", "must be zero or positive"));

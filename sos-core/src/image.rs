@@ -35,8 +35,7 @@ impl RgbImage {
 
     /// Reads a PNG or JPEG file (8 or 16 bit; alpha is dropped).
     pub fn load(path: &Path) -> Result<Self, IoError> {
-        let img = image::open(path)
-            .map_err(|e| IoError::file(path, format!("cannot decode image ({e}); re-export it as PNG or JPEG")))?;
+        let img = open_image(path, "image", "; re-export it as PNG or JPEG")?;
         let rgb = img.to_rgb32f();
         let (w, h) = rgb.dimensions();
         if w == 0 || h == 0 {
@@ -62,6 +61,30 @@ impl RgbImage {
     }
 }
 
+/// The most pixels one image file may hold: 100 megapixels, 1.2 GB as the 32-bit RGB a view
+/// keeps (several images decode at once). Larger photographs belong downscaled on disk; a
+/// header declaring more (a decompression bomb, or a corrupt size) is refused before any
+/// pixel is decoded.
+pub const MAX_IMAGE_PIXELS: u64 = 100_000_000;
+
+/// Decodes an image file after checking its declared size against [`MAX_IMAGE_PIXELS`];
+/// `what` names it in errors ("image", "mask"), `hint` is appended to decoding errors.
+pub fn open_image(path: &Path, what: &str, hint: &str) -> Result<image::DynamicImage, IoError> {
+    let undecodable = |e: &dyn std::fmt::Display| IoError::file(path, format!("cannot decode {what} ({e}){hint}"));
+    let reader = image::ImageReader::open(path)
+        .map_err(|e| IoError::file(path, format!("cannot read {what}: {e}")))?
+        .with_guessed_format()
+        .map_err(|e| undecodable(&e))?;
+    let (w, h) = reader.into_dimensions().map_err(|e| undecodable(&e))?;
+    if u64::from(w) * u64::from(h) > MAX_IMAGE_PIXELS {
+        return Err(IoError::file(
+            path,
+            format!("{what} is {w}x{h}, over {} megapixels; downscale it on disk first", MAX_IMAGE_PIXELS / 1_000_000),
+        ));
+    }
+    image::open(path).map_err(|e| undecodable(&e))
+}
+
 /// A single-channel image (mask or scalar map), row-major `[height, width]`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct GrayImage {
@@ -76,7 +99,7 @@ pub struct GrayImage {
 impl GrayImage {
     /// Reads any image as luminance in `[0, 1]`.
     pub fn load(path: &Path) -> Result<Self, IoError> {
-        let img = image::open(path).map_err(|e| IoError::file(path, format!("cannot decode mask ({e})")))?;
+        let img = open_image(path, "mask", "")?;
         let g = img.to_luma32f();
         let (w, h) = g.dimensions();
         Ok(GrayImage { width: w as usize, height: h as usize, data: g.into_raw() })
@@ -205,6 +228,28 @@ mod tests {
         std::fs::write(&path, b"not a png").unwrap();
         let err = RgbImage::load(&path).unwrap_err().to_string();
         assert!(err.contains("bad.png"), "{err}");
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn an_image_declaring_too_many_pixels_is_refused_before_decoding() {
+        let dir = std::env::temp_dir().join(format!("sos-huge-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("huge.jpg");
+        image::RgbImage::new(8, 8).save(&path).unwrap();
+        assert_eq!((RgbImage::load(&path).unwrap().width, GrayImage::load(&path).unwrap().height), (8, 8));
+        // The frame header (SOF0: marker, length, precision, height, width) now declares
+        // 20000x20000 pixels, 4.8 GB as 32-bit RGB.
+        let mut bytes = std::fs::read(&path).unwrap();
+        let mut sof = 2; // after the start-of-image marker, walk the segments
+        while bytes[sof + 1] != 0xC0 {
+            sof += 2 + usize::from(u16::from_be_bytes([bytes[sof + 2], bytes[sof + 3]]));
+        }
+        bytes[sof + 5..sof + 9].copy_from_slice(&[0x4E, 0x20, 0x4E, 0x20]);
+        std::fs::write(&path, &bytes).unwrap();
+        for err in [RgbImage::load(&path).unwrap_err().to_string(), GrayImage::load(&path).unwrap_err().to_string()] {
+            assert!(err.contains("huge.jpg") && err.contains("20000x20000") && err.contains("downscale"), "{err}");
+        }
         std::fs::remove_dir_all(dir).ok();
     }
 }

@@ -76,8 +76,9 @@ impl SceneExtent {
         let finite = |vs: &[f32]| vs.iter().all(|v| v.is_finite());
         match *self {
             SceneExtent::Bounded { min, max } => {
-                if !finite(&min) || !finite(&max) {
-                    Some(format!("its box {self} is not finite"))
+                let size = [max[0] - min[0], max[1] - min[1], max[2] - min[2]];
+                if !finite(&min) || !finite(&max) || !finite(&size) {
+                    Some(format!("its box {self} is not finite (or too wide for 32-bit floats)"))
                 } else if (0..3).any(|a| max[a] <= min[a]) {
                     Some(format!("its box {self} is empty along an axis"))
                 } else {
@@ -163,6 +164,11 @@ impl Scene {
             if i >= self.views.len() {
                 return Err(format!("split index {i} out of range ({} views)", self.views.len()));
             }
+        }
+        // Masks, renders and metrics are written and reported by view name.
+        let mut names = std::collections::HashSet::new();
+        if let Some(v) = self.views.iter().find(|v| !names.insert(v.name.as_str())) {
+            return Err(format!("two views are named {:?}; outputs are written by view name, so rename one", v.name));
         }
         for v in &self.views {
             v.camera.validate().map_err(|e| format!("view {}: {e}", v.name))?;
@@ -259,6 +265,8 @@ mod tests {
             (ff(2.0, 1.0), "0 < near < far"),
             (SceneExtent::Bounded { min: [f32::NEG_INFINITY, -1.0, -1.0], max: [1.0; 3] }, "not finite"),
             (SceneExtent::Bounded { min: [-1.0, 0.5, -1.0], max: [1.0, 0.5, 1.0] }, "empty along an axis"),
+            // Finite corners whose distance overflows: every cell would be infinitely wide.
+            (SceneExtent::Bounded { min: [-3e38; 3], max: [3e38; 3] }, "not finite"),
             (SceneExtent::Unbounded { center: [0.0; 3], radius: 0.0 }, "positive radius"),
             (SceneExtent::Unbounded { center: [f32::NAN, 0.0, 0.0], radius: 1.0 }, "positive radius"),
         ] {
@@ -270,5 +278,14 @@ mod tests {
         let mut scene = blank_scene(2, 4, 4);
         scene.near = f32::NAN;
         assert!(scene.validate().unwrap_err().contains("near"));
+    }
+
+    #[test]
+    fn two_views_of_one_name_are_refused() {
+        let mut scene = blank_scene(3, 4, 4);
+        assert_eq!(scene.validate(), Ok(()));
+        scene.views[2].name = scene.views[0].name.clone();
+        let err = scene.validate().unwrap_err();
+        assert!(err.contains(&format!("{:?}", scene.views[0].name)) && err.contains("rename"), "{err}");
     }
 }

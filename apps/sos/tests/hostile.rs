@@ -135,6 +135,8 @@ fn every_non_finite_float_of_every_kind_is_refused_by_key() {
         ("scene.near", "[scene]\nkind = \"blender\"\npath = \".\"\nnear = inf\n"),
         ("scene.bd_factor", "[scene]\nkind = \"llff\"\npath = \".\"\nbd_factor = nan\n"),
         ("render.memory_gib", "[scene]\nkind = \"synthetic\"\n[render]\nmemory_gib = inf\n"),
+        // Mask inference reads it from a checkpoint's head even when no stage 2 runs.
+        ("segment.weight_threshold", "[scene]\nkind = \"synthetic\"\n[segment]\nsteps = 0\nweight_threshold = nan\n"),
         ("loss[0].weight", "[scene]\nkind = \"synthetic\"\n[[loss]]\nkind = \"appearance\"\nweight = nan\n"),
     ];
     for (key, config) in optional {

@@ -257,6 +257,18 @@ impl StateDict {
                 }
             }
         }
+        // A diverged training run saves NaN weights; named here, they are not blamed on
+        // whatever later trains on the model's features.
+        if let Some(i) = out.iter().position(|v| !v.is_finite()) {
+            return Err(CheckpointError::Format {
+                path: self.path.clone(),
+                message: format!(
+                    "tensor `{name}` holds {} at element {i}; the weights are damaged (or saved from a \
+                     diverged run): use the published file",
+                    out[i]
+                ),
+            });
+        }
         Ok(out)
     }
 
@@ -268,9 +280,10 @@ impl StateDict {
 
 /// Row-major strides of `shape`.
 pub fn contiguous_strides(shape: &[usize]) -> Vec<usize> {
-    let mut stride = vec![1; shape.len()];
+    let mut stride = vec![1usize; shape.len()];
     for d in (0..shape.len().saturating_sub(1)).rev() {
-        stride[d] = stride[d + 1] * shape[d + 1];
+        // Saturating: an absurd shape is refused by the bounds check, not by an overflow.
+        stride[d] = stride[d + 1].saturating_mul(shape[d + 1]);
     }
     stride
 }
@@ -290,6 +303,16 @@ fn check_bounds(e: &TensorEntry) -> Result<(), String> {
     }
     if e.numel() == 0 {
         return Ok(());
+    }
+    // Zero or overlapping strides could declare any number of elements over a few bytes, and
+    // reading them would allocate that many: no saved weight repeats its storage.
+    if e.numel() > e.storage.len() / size {
+        return Err(format!(
+            "shape {:?} holds {} elements, more than its storage of {}",
+            e.shape,
+            e.numel(),
+            e.storage.len() / size
+        ));
     }
     let last = e
         .shape
@@ -347,6 +370,8 @@ mod tests {
         assert!(check_bounds(&e(vec![2], vec![1], 0, 7)).is_err());
         assert!(check_bounds(&e(vec![0, 5], vec![5, 1], 0, 0)).is_ok());
         assert!(check_bounds(&e(vec![usize::MAX, 2], vec![usize::MAX, 1], 0, 8)).is_err());
+        // A billion elements of stride 0 over one float.
+        assert!(check_bounds(&e(vec![1 << 30], vec![0], 0, 4)).is_err());
     }
 
     #[test]

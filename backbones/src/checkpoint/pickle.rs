@@ -3,7 +3,9 @@
 //! any code.
 //!
 //! Every [`Value`] is cheap to clone (strings and bytes are shared), so a hostile pickle that
-//! repeats a memoised value many times costs a few bytes per repeat, not a copy each.
+//! repeats a memoised value many times costs a few bytes per repeat, not a copy each; the few
+//! builtins that do copy a container's items share a budget proportional to the pickle's
+//! length.
 //!
 //! Calls (`REDUCE`, `NEWOBJ`) are not executed: they become [`Value::Call`] records of the
 //! callable and its arguments, which the caller interprets (see `pth.rs`). A few builtins
@@ -82,6 +84,16 @@ impl Value {
             Value::Tuple(t) => Some(t.as_ref().clone()),
             Value::List(l) => Some(l.borrow().clone()),
             _ => None,
+        }
+    }
+
+    /// Number of items of a tuple, list or dict (0 for other values), without copying them.
+    pub fn item_count(&self) -> usize {
+        match self {
+            Value::Tuple(t) => t.len(),
+            Value::List(l) => l.borrow().len(),
+            Value::Dict(d) => d.borrow().len(),
+            _ => 0,
         }
     }
 
@@ -215,6 +227,15 @@ struct Machine<'a> {
     stack: Vec<Value>,
     marks: Vec<usize>,
     memo: HashMap<u64, Value>,
+    /// Container items the evaluated builtin calls have copied so far (see [`Machine::push_call`]).
+    copied: usize,
+}
+
+/// Container items the builtin calls of a pickle may copy: a few per byte of pickle. A
+/// checkpoint's calls copy each container once; a hostile pickle could otherwise call
+/// `list` on one memoised million-item list a million times in a few megabytes.
+fn copy_budget(pickle_len: usize) -> usize {
+    16usize.saturating_mul(pickle_len).saturating_add(1 << 20)
 }
 
 impl<'a> Machine<'a> {
@@ -277,10 +298,25 @@ impl<'a> Machine<'a> {
         self.memo.insert(key, v);
         Ok(())
     }
-    fn push_call(&mut self, callable: Value, args: Value) {
+    fn push_call(&mut self, callable: Value, args: Value) -> Result<(), String> {
+        // What an evaluated builtin copies: its argument tuple and that tuple's first item.
+        let first = match &args {
+            Value::Tuple(t) => t.first().map_or(0, Value::item_count),
+            _ => 0,
+        };
+        self.copied = self.copied.saturating_add(args.item_count()).saturating_add(first);
+        if self.copied > copy_budget(self.data.len()) {
+            return Err(format!(
+                "pickle calls copy over {} container items, far more than a {}-byte checkpoint holds \
+                 (corrupt or hostile pickle)",
+                copy_budget(self.data.len()),
+                self.data.len()
+            ));
+        }
         let v = builtin_call(&callable, &args)
             .unwrap_or_else(|| Value::Call(Rc::new(RefCell::new(Call { callable, args, state: None }))));
         self.stack.push(v);
+        Ok(())
     }
     fn set_items(&mut self, items: Vec<Value>) -> Result<(), String> {
         if !items.len().is_multiple_of(2) {
@@ -342,7 +378,7 @@ pub fn load(data: &[u8]) -> Result<Value, String> {
 /// bytes it took, up to and including its `STOP` (the legacy `torch.save` format writes
 /// several pickles one after the other).
 pub fn load_prefix(data: &[u8]) -> Result<(Value, usize), String> {
-    let mut m = Machine { data, pos: 0, stack: Vec::new(), marks: Vec::new(), memo: HashMap::new() };
+    let mut m = Machine { data, pos: 0, stack: Vec::new(), marks: Vec::new(), memo: HashMap::new(), copied: 0 };
     loop {
         let at = m.pos;
         let op = m.u8()?;
@@ -513,13 +549,13 @@ pub fn load_prefix(data: &[u8]) -> Result<(Value, usize), String> {
             b'R' | 0x81 => {
                 let args = m.pop()?;
                 let callable = m.pop()?;
-                m.push_call(callable, args);
+                m.push_call(callable, args)?;
             }
             0x92 => {
                 let _kwargs = m.pop()?;
                 let args = m.pop()?;
                 let callable = m.pop()?;
-                m.push_call(callable, args);
+                m.push_call(callable, args)?;
             }
             b'b' => {
                 let state = m.pop()?;
@@ -589,6 +625,24 @@ mod tests {
             Value::Dict(d) => d.borrow().clone(),
             other => panic!("not a dict: {}", other.describe()),
         }
+    }
+
+    #[test]
+    fn builtins_copying_one_memoised_list_over_and_over_are_stopped() {
+        // list(L) a thousand times over one memoised 100,000-item list: 10^8 copies from a
+        // pickle of 105 kB.
+        let mut p = b"\x80\x02cbuiltins\nlist\nq\x00](".to_vec();
+        p.extend(b"N".repeat(100_000));
+        p.extend(b"eq\x01");
+        p.extend(b"h\x00h\x01\x85R0".repeat(1000));
+        p.extend(b"N.");
+        let err = load(&p).unwrap_err();
+        assert!(err.contains("copy over") && err.contains("hostile"), "{err}");
+        // Copying it a few times, as a checkpoint might, is fine.
+        let mut few = p[..p.len() - 1000 * 7 - 2].to_vec();
+        few.extend(b"h\x00h\x01\x85R0".repeat(3));
+        few.extend(b"N.");
+        assert!(matches!(load(&few), Ok(Value::None)));
     }
 
     #[test]

@@ -169,11 +169,27 @@ fn usize_list(v: &Value, what: &str) -> Result<Vec<usize>, String> {
         .collect()
 }
 
+/// How many parameter or subclass wrappers may enclose a tensor: torch.save writes one or
+/// two, and a hostile file nesting them a million deep would overflow the stack.
+const MAX_TENSOR_WRAPPERS: usize = 16;
+
 /// The tensor a pickled value rebuilds, `None` for values that are not tensors.
 fn tensor_of(
     v: &Value,
     storage: &dyn Fn(&StorageRef) -> Result<Range<usize>, String>,
 ) -> Result<Option<TensorEntry>, String> {
+    wrapped_tensor(v, storage, 0)
+}
+
+/// [`tensor_of`] inside `wrappers` enclosing rebuild calls.
+fn wrapped_tensor(
+    v: &Value,
+    storage: &dyn Fn(&StorageRef) -> Result<Range<usize>, String>,
+    wrappers: usize,
+) -> Result<Option<TensorEntry>, String> {
+    if wrappers > MAX_TENSOR_WRAPPERS {
+        return Err(format!("a tensor wrapped in over {MAX_TENSOR_WRAPPERS} rebuild calls"));
+    }
     let Value::Call(call) = v else { return Ok(None) };
     let call = call.borrow();
     let Some(func) = call.callable.global() else { return Ok(None) };
@@ -195,7 +211,7 @@ fn tensor_of(
             Ok(Some(TensorEntry { dtype: sref.dtype(), shape, stride, offset, storage: range }))
         }
         ("torch._utils", "_rebuild_parameter" | "_rebuild_parameter_with_state") => match args.first() {
-            Some(inner) => tensor_of(inner, storage),
+            Some(inner) => wrapped_tensor(inner, storage, wrappers + 1),
             None => Err("_rebuild_parameter without arguments".into()),
         },
         ("torch._tensor", "_rebuild_from_type_v2") => {
@@ -208,7 +224,7 @@ fn tensor_of(
                 args: a.clone(),
                 state: None,
             })));
-            tensor_of(&inner, storage)
+            wrapped_tensor(&inner, storage, wrappers + 1)
         }
         _ => Ok(None),
     }
@@ -235,4 +251,31 @@ fn storage_ref(v: &Value) -> Result<StorageRef, String> {
     let numel = items.get(4).and_then(Value::as_int).and_then(|n| u64::try_from(n).ok());
     let is_view = items.get(5).is_some_and(|m| !matches!(m, Value::None));
     Ok(StorageRef { type_name, key, numel, is_view })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `{"w": _rebuild_parameter(_rebuild_parameter(...(None)))}`, `depth` calls deep.
+    fn nested_parameters(depth: usize) -> Vec<u8> {
+        let mut p = b"\x80\x02}\x8c\x01wctorch._utils\n_rebuild_parameter\nq\x00".to_vec();
+        p.extend(b"h\x00".repeat(depth - 1)); // the callable of every level, outermost first
+        p.push(b'N');
+        p.extend(b"\x85R".repeat(depth)); // each level: (inner,) then the call
+        p.extend(b"s.");
+        p
+    }
+
+    #[test]
+    fn tensors_nested_beyond_any_torch_save_are_refused_not_recursed() {
+        let no_storage = |_: &StorageRef| -> Result<Range<usize>, String> { Err("no storage".into()) };
+        // Within the limit the innermost value is no tensor: nothing is read.
+        let shallow = pickle::load(&nested_parameters(3)).unwrap();
+        let err = read_state_dict(&shallow, &no_storage).unwrap_err();
+        assert!(!err.contains("rebuild calls"), "{err}");
+        let deep = pickle::load(&nested_parameters(200_000)).unwrap();
+        let err = read_state_dict(&deep, &no_storage).unwrap_err();
+        assert!(err.contains("tensor `w`") && err.contains("rebuild calls"), "{err}");
+    }
 }

@@ -177,6 +177,13 @@ impl DinoVitConfig {
                 ));
             }
         }
+        // An input smaller than one patch gives the model no token at all.
+        if self.input_size < shape.patch {
+            return Err(invalid(
+                "input_size",
+                format!("must be at least the model's patch of {} px, got {}", shape.patch, self.input_size),
+            ));
+        }
         let model = Vit::from_state_dict(&sd, shape).map_err(not_dino)?;
         Ok((model, sd.content_hash()))
     }

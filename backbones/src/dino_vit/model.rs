@@ -231,7 +231,7 @@ impl VitShape {
             None => return not_dino("`pos_embed` is missing".into()),
         };
         let grid = (positions as f64).sqrt().round() as usize;
-        if grid * grid != positions {
+        if grid.checked_mul(grid) != Some(positions) {
             return not_dino(format!("`pos_embed` has {positions} patch positions, not a square grid"));
         }
         let depth = (0..).take_while(|i| sd.shape(&format!("blocks.{i}.norm1.weight")).is_some()).count();
