@@ -335,6 +335,9 @@ impl OnnxExtractor {
         names.extend(self.config.cls.as_deref());
         names.extend(self.config.saliency.as_deref());
         let outs = self.model.run(data, &[run_n, 3, s, s], &names)?;
+        for (out, name) in outs.iter().zip(&names) {
+            check_batch(out, name, run_n)?;
+        }
         let tokens = &outs[0];
         let cls_out = self.config.cls.as_ref().map(|_| &outs[1]);
         let sal_out = self.config.saliency.as_ref().map(|_| &outs[names.len() - 1]);
@@ -392,6 +395,24 @@ impl OnnxExtractor {
         };
         Ok(FeatureMap { channels, height, width, data, cls: global, saliency })
     }
+}
+
+/// Checks that an output holds as many values as its dimensions say and one row per image of
+/// the batch: a graph that folds the batch into another axis would otherwise be read out of
+/// range.
+fn check_batch(out: &Output, name: &str, images: usize) -> Result<(), String> {
+    let declared = out.dims.iter().try_fold(1usize, |a, &d| a.checked_mul(d));
+    if declared != Some(out.data.len()) {
+        return Err(format!("output `{name}` has dimensions {:?} but {} values", out.dims, out.data.len()));
+    }
+    if out.dims.first().copied().unwrap_or(0) != images {
+        return Err(format!(
+            "output `{name}` has dimensions {:?} for a batch of {images} images; the model must keep the batch \
+             as its first axis",
+            out.dims
+        ));
+    }
+    Ok(())
 }
 
 /// A patch grid `(h, w)` with `h·w = n` for a square input: the most square factorisation.
@@ -463,5 +484,21 @@ impl FeatureExtractor for OnnxExtractor {
             c.cls,
             c.saliency
         )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn outputs_must_keep_one_row_per_image() {
+        let out = |dims: Vec<usize>, len: usize| Output { dims, data: vec![0.0; len] };
+        assert!(check_batch(&out(vec![2, 5, 8], 80), "tokens", 2).is_ok());
+        // The batch folded into the token axis: read per image, it would run out of range.
+        let err = check_batch(&out(vec![1, 10, 8], 80), "tokens", 2).unwrap_err();
+        assert!(err.contains("`tokens`") && err.contains("first axis"), "{err}");
+        let err = check_batch(&out(vec![2, 5, 8], 79), "tokens", 2).unwrap_err();
+        assert!(err.contains("79 values"), "{err}");
     }
 }
