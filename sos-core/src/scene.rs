@@ -160,6 +160,27 @@ impl Scene {
         if !(self.near.is_finite() && self.near >= 0.0) {
             return Err(format!("the scene's `near` distance {} must be a finite number of at least 0", self.near));
         }
+        // In a box, no sample lies farther from a camera than the box's farthest corner: a
+        // `near` beyond that for every training camera leaves every ray without a sample.
+        if let SceneExtent::Bounded { min, max } = self.extent {
+            let farthest = self
+                .train
+                .iter()
+                .filter_map(|&i| self.views.get(i))
+                .map(|v| {
+                    let o = v.camera.origin();
+                    let far = |a: usize| (o[a] - min[a]).abs().max((o[a] - max[a]).abs());
+                    (far(0) * far(0) + far(1) * far(1) + far(2) * far(2)).sqrt()
+                })
+                .fold(0.0f32, f32::max);
+            if self.near >= farthest {
+                return Err(format!(
+                    "the scene's `near` distance {} lies beyond every point of its box (the farthest is {farthest:.3} \
+                     from a training camera), so no ray would get a sample; lower `near`",
+                    self.near
+                ));
+            }
+        }
         for &i in self.train.iter().chain(&self.test) {
             if i >= self.views.len() {
                 return Err(format!("split index {i} out of range ({} views)", self.views.len()));
@@ -278,6 +299,13 @@ mod tests {
         let mut scene = blank_scene(2, 4, 4);
         scene.near = f32::NAN;
         assert!(scene.validate().unwrap_err().contains("near"));
+        // The cameras stand 3 and 4 from the centre of a 2-wide box: its farthest corner lies
+        // sqrt(27) = 5.196 from the second.
+        scene.near = 5.0;
+        assert_eq!(scene.validate(), Ok(()));
+        scene.near = 5.3;
+        let err = scene.validate().unwrap_err();
+        assert!(err.contains("`near`") && err.contains("5.196"), "{err}");
     }
 
     #[test]
