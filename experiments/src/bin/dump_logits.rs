@@ -11,20 +11,14 @@ use std::io::Write;
 use std::path::PathBuf;
 
 use sos_core::segment::infer::{render_logits, FocusTarget, MaskInference};
-use sos_core::segment::store::load_with_head;
-use sos_core::train::Session;
+use sos_experiments::{args_or_usage, open_with_head};
 use sos_plugins as _;
 
 fn main() {
     sos_benchmarks::setup();
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let [config, checkpoint, out] = &args[..] else {
-        eprintln!("usage: dump_logits CONFIG CHECKPOINT OUT_DIR");
-        std::process::exit(2);
-    };
-    let mut session = Session::open(config.as_ref()).expect("config opens");
-    let (loaded, _) = load_with_head(&mut session, Some(checkpoint.as_ref())).expect("checkpoint loads");
-    let head = loaded.expect("the checkpoint holds a segmentation head").head;
+    let args = args_or_usage(3, "dump_logits CONFIG CHECKPOINT OUT_DIR");
+    let (session, head) = open_with_head(&args[0], &args[1]);
+    let out = &args[2];
     let out = PathBuf::from(out);
     std::fs::create_dir_all(&out).expect("output folder");
     let focus = FocusTarget::of_scene(&session.scene);

@@ -21,24 +21,17 @@ use sos_core::render::occupancy::OccupancyGrid;
 use sos_core::render::rays::RayBatch;
 use sos_core::render::renderer::render;
 use sos_core::segment::evaluate::evaluate_masks;
-use sos_core::segment::head::SegHead;
 use sos_core::segment::infer::{saliency_extractor, MaskInference};
-use sos_core::segment::store::load_with_head;
 use sos_core::train::Session;
+use sos_experiments::{args_or_usage, open_with_head};
 use sos_plugins as _;
 
 fn main() {
     sos_benchmarks::setup();
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    if args.len() < 2 {
-        eprintln!("usage: occupancy_probe CONFIG CHECKPOINT [WIDTH HEIGHT] [REPEATS]");
-        std::process::exit(2);
-    }
+    let args = args_or_usage(2, "occupancy_probe CONFIG CHECKPOINT [WIDTH HEIGHT] [REPEATS]");
     let number = |i: usize, default: u32| args.get(i).map_or(default, |s| s.parse().expect("a number"));
     let (width, height, repeats) = (number(2, 504), number(3, 378), number(4, 3));
-    let mut session = Session::open(args[0].as_ref()).expect("config opens");
-    let (loaded, _) = load_with_head(&mut session, Some(args[1].as_ref())).expect("checkpoint loads");
-    let head = loaded.expect("the checkpoint holds a segmentation head").head;
+    let (mut session, head) = open_with_head(&args[0], &args[1]);
     let baked = session.occupancy.clone().expect("the run skips with an occupancy grid");
 
     let mut variants: Vec<(&str, OccupancyGrid)> = vec![("checkpoint (1 probe, dilated)", baked)];
@@ -62,11 +55,11 @@ fn main() {
     for (label, grid) in variants {
         let occupied = grid.occupancy();
         session.occupancy = Some(grid);
-        let (seconds, foreground) = timed_view(&session, &head, width, height, repeats);
-        let reference = reference.get_or_insert_with(|| foreground.clone());
-        let differ = foreground.iter().zip(reference.iter()).filter(|(a, b)| a != b).count();
         let extractor = saliency_extractor(&session).expect("extractor");
         let inference = MaskInference::new(&session, &head, extractor.as_deref()).expect("inference");
+        let (seconds, foreground) = timed_view(&session, &inference, width, height, repeats);
+        let reference = reference.get_or_insert_with(|| foreground.clone());
+        let differ = foreground.iter().zip(reference.iter()).filter(|(a, b)| a != b).count();
         let eval = evaluate_masks(&session, &inference, false).expect("held-out views");
         let json = serde_json::to_value(&eval).expect("serialisable");
         let seg = &json["segmentation"];
@@ -83,11 +76,9 @@ fn main() {
 }
 
 /// The median time of a view with its mask at `width`x`height`, and its foreground.
-fn timed_view(session: &Session, head: &SegHead, width: u32, height: u32, repeats: u32) -> (f64, Vec<bool>) {
+fn timed_view(session: &Session, inference: &MaskInference, width: u32, height: u32, repeats: u32) -> (f64, Vec<bool>) {
     let view = &session.scene.views[session.scene.test[0]];
     let camera = view.camera.resized(width, height);
-    let extractor = saliency_extractor(session).expect("extractor");
-    let inference = MaskInference::new(session, head, extractor.as_deref()).expect("inference");
     let mut times = Vec::new();
     let mut foreground = Vec::new();
     for _ in 0..repeats.max(1) {

@@ -20,8 +20,7 @@ use rand::{Rng, SeedableRng};
 use sos_core::camera::{cross, dot, normalize, sub, Vec3};
 use sos_core::metrics::binary_iou;
 use sos_core::segment::infer::{render_logits, FocusTarget};
-use sos_core::segment::store::load_with_head;
-use sos_core::train::Session;
+use sos_experiments::{args_or_usage, open_with_head};
 use sos_plugins as _;
 
 /// A setting from the environment variable `name`, or `default`.
@@ -64,15 +63,9 @@ fn neighbours(n: usize, g: [i64; 3]) -> impl Iterator<Item = usize> {
 
 fn main() {
     sos_benchmarks::setup();
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    if args.len() < 2 {
-        eprintln!("usage: prior3d CONFIG CHECKPOINT [N]");
-        std::process::exit(2);
-    }
+    let args = args_or_usage(2, "prior3d CONFIG CHECKPOINT [N]");
     let n: usize = args.get(2).map_or(128, |s| s.parse().expect("N is a number"));
-    let mut session = Session::open(args[0].as_ref()).expect("config opens");
-    let (loaded, _) = load_with_head(&mut session, Some(args[1].as_ref())).expect("checkpoint loads");
-    let head = loaded.expect("the checkpoint holds a segmentation head").head;
+    let (session, head) = open_with_head(&args[0], &args[1]);
     let c = session.contraction;
     let (alpha, tol_cells, join) = (alpha(), tol_cells(), join());
 

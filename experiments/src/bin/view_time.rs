@@ -23,22 +23,16 @@ use sos_core::render::renderer::{render, render_inference, RenderOptions, Render
 use sos_core::segment::head::SegHead;
 use sos_core::segment::head_pass;
 use sos_core::segment::infer::{render_logits, saliency_extractor, MaskInference};
-use sos_core::segment::store::load_with_head;
 use sos_core::train::Session;
+use sos_experiments::{args_or_usage, open_with_head};
 use sos_plugins as _;
 
 fn main() {
     sos_benchmarks::setup();
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    if args.len() < 2 {
-        eprintln!("usage: view_time CONFIG CHECKPOINT [WIDTH HEIGHT] [REPEATS]");
-        std::process::exit(2);
-    }
+    let args = args_or_usage(2, "view_time CONFIG CHECKPOINT [WIDTH HEIGHT] [REPEATS]");
     let number = |i: usize, default: u32| args.get(i).map_or(default, |s| s.parse().expect("a number"));
     let (width, height, repeats) = (number(2, 504), number(3, 378), number(4, 3));
-    let mut session = Session::open(args[0].as_ref()).expect("config opens");
-    let (loaded, _) = load_with_head(&mut session, Some(args[1].as_ref())).expect("checkpoint loads");
-    let head = loaded.expect("the checkpoint holds a segmentation head").head;
+    let (session, head) = open_with_head(&args[0], &args[1]);
     let view = &session.scene.views[session.scene.test[0]];
     let camera = view.camera.resized(width, height);
     let extractor = saliency_extractor(&session).expect("extractor");
