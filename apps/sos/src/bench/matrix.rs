@@ -176,7 +176,7 @@ pub fn plan(file: &BenchFile, profile: Option<&str>, out: &Path) -> anyhow::Resu
             }
             for seed in &seeds {
                 if spec.program.is_some() {
-                    runs.push(context.program_run(method, *seed)?);
+                    runs.push(context.program_run(method, &value, *seed)?);
                     continue;
                 }
                 let points = vec![Point { label: String::new(), set: spec.set.clone(), x: None }];
@@ -303,9 +303,10 @@ impl RunContext<'_> {
     }
 
     /// The run of a method that another build runs (`program` and `config`): its config is
-    /// that build's, read as TOML with only the seed set; its hash covers the binary's bytes,
-    /// so a rebuilt program runs again.
-    fn program_run(&self, method: &str, seed: u64) -> anyhow::Result<PlannedRun> {
+    /// that build's, read as TOML with the seed and the method's `scene_keys` (taken from
+    /// `scene`, this scene's resolved config) set; its hash covers the binary's bytes, so a
+    /// rebuilt program runs again.
+    fn program_run(&self, method: &str, scene: &Value, seed: u64) -> anyhow::Result<PlannedRun> {
         let fpath = self.file.path.display();
         let spec = &self.file.methods[method];
         let dir = self.file.dir();
@@ -317,9 +318,13 @@ impl RunContext<'_> {
         let missing = |key: &str, p: &Path| {
             (!p.is_file()).then(|| format!("path missing: {} (`{key}` of method `{method}`)", p.display()))
         };
-        // Nothing of the scene applies (its config, overrides, generated layout), so neither do
-        // its skips.
-        let skip = missing("program", &program).or_else(|| missing("config", &config_path));
+        // Nothing of the scene applies (its config, overrides, generated layout) unless the
+        // method takes some of its keys; only then do its skips.
+        let takes_scene = !spec.scene_keys.is_empty();
+        let skip = missing("program", &program).or_else(|| missing("config", &config_path)).or_else(|| {
+            takes_scene
+                .then(|| self.skip.clone().or_else(|| missing_files(scene, self.config_dir, self.generate.is_some())))?
+        });
         let mut config = Value::Table(Table::new());
         if skip.is_none() {
             let text = std::fs::read_to_string(&config_path)
@@ -329,17 +334,36 @@ impl RunContext<'_> {
                 .map(Value::Table)
                 .with_context(|| format!("{fpath}: method `{method}`: {} is not TOML", config_path.display()))?;
             overlay::set(&mut config, "seed", Value::Integer(seed as i64)).expect("the root is a table");
+            for key in &spec.scene_keys {
+                let value = taken_key(scene, key, self.config_dir).with_context(|| {
+                    format!("{fpath}: method `{method}`, `scene_keys`: scene `{}` has no key `{key}`", self.scene)
+                })?;
+                overlay::set(&mut config, key, value).with_context(|| format!("{fpath}: method `{method}`"))?;
+            }
         }
         // The shard key must be the same on every machine, whatever it has built.
-        let shard_key =
-            hash_text(&format!("program {}\n{method}\n{seed}", spec.program.as_ref().expect("set").display()));
+        let mut shard_key = format!("program {}\n{method}\n{seed}", spec.program.as_ref().expect("set").display());
+        if takes_scene {
+            shard_key.push_str(&format!("\nscene {}", self.scene));
+        }
+        let shard_key = hash_text(&shard_key);
+        let generate = self.generate.filter(|_| takes_scene);
         let hash = match skip {
             Some(_) => shard_key.clone(),
             None => {
                 let bytes = std::fs::read(&program)
                     .with_context(|| format!("{fpath}: method `{method}`: reading {}", program.display()))?;
                 let binary = hash_bytes(&bytes);
-                let text = toml::to_string(&config).context("serialising a run config")?;
+                let text = match generate {
+                    // Named by its spec, not by the machine's path to it.
+                    Some(g) => {
+                        let mut c = config.clone();
+                        overlay::set(&mut c, "scene.path", Value::String("<generated>".into()))?;
+                        let spec = toml::to_string(&g.spec).context("serialising a generated scene")?;
+                        format!("{}\n# generate\n{spec}", toml::to_string(&c).context("serialising a run config")?)
+                    }
+                    None => toml::to_string(&config).context("serialising a run config")?,
+                };
                 hash_text(&format!("# program sha256 = {binary}\n{text}"))
             }
         };
@@ -353,7 +377,7 @@ impl RunContext<'_> {
                 seed,
             },
             config_dir: config_path.parent().map(Path::to_path_buf).unwrap_or_default(),
-            generate: None,
+            generate: generate.cloned(),
             config,
             stage1_hash: hash.clone(),
             hash,
@@ -362,6 +386,20 @@ impl RunContext<'_> {
             program: Some(program),
             view_size: None,
         })
+    }
+}
+
+/// The value at dotted `key` of a scene's resolved config, for another build's config: a
+/// relative `scene.path` made absolute against the scene's config folder, since the other
+/// build reads it from beside its own config (`scene.masks` is relative to the path).
+fn taken_key(scene: &Value, key: &str, config_dir: &Path) -> Option<Value> {
+    let value = key.split('.').try_fold(scene, |node, segment| node.get(segment))?.clone();
+    match value {
+        Value::String(p) if key == "scene.path" && Path::new(&p).is_relative() => {
+            let absolute = std::path::absolute(config_dir.join(&p)).ok()?;
+            Some(Value::String(absolute.display().to_string()))
+        }
+        v => Some(v),
     }
 }
 
@@ -733,6 +771,44 @@ mod tests {
         let why = missing_files(&config("../sam"), &dir, false).unwrap();
         assert!(why.contains("sam") && why.contains("`scene.masks`"), "{why}");
         assert_eq!(missing_files(&config("segments"), &dir, false), None);
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn another_build_takes_the_scene_keys_it_names_and_its_generated_layout() {
+        let body = "[scenes.g]\nconfig = \"base.toml\"\nset = { scene = { kind = \"colmap\" }, \"train.steps\" = 7 }\n\
+             generate = { layout = \"colmap\", width = 40, height = 30, views = 8 }\n\
+             [scenes.h]\nconfig = \"base.toml\"\nset = { scene = { kind = \"colmap\" }, \"train.steps\" = 7 }\n\
+             generate = { layout = \"colmap\", width = 40, height = 30, views = 9 }\n\
+             [methods.default]\n[methods.old]\nprogram = \"old-sos\"\nconfig = \"old.toml\"\n\
+             scene_keys = [\"scene.path\", \"train.steps\"]\n[profiles.p]\nmethods = [\"default\", \"old\"]\n";
+        let (dir, file) = bench(body);
+        let file = file.unwrap();
+        std::fs::write(dir.join("old-sos"), "binary").unwrap();
+        std::fs::write(dir.join("old.toml"), "[scene]\nkind = \"colmap\"\n[train]\nsteps = 1000\n[legacy]\nkey = 1\n")
+            .unwrap();
+        let plan_in = |out: &str| plan(&file, Some("p"), &dir.join(out)).unwrap();
+        let m = plan_in("out-1");
+        let old =
+            |m: &Matrix, scene: &str| m.runs.iter().find(|r| r.key.id == format!("{scene}__old__s0")).cloned().unwrap();
+        let default = m.runs.iter().find(|r| r.key.id == "g__default__s0").unwrap();
+        let (g, h) = (old(&m, "g"), old(&m, "h"));
+        assert_eq!(g.skip, None);
+        // The scene's generated path and steps, the build's own other keys.
+        let scene_path = default.config.get("scene").unwrap().get("path").unwrap();
+        assert_eq!(g.config.get("scene").unwrap().get("path"), Some(scene_path));
+        assert_eq!(g.config.get("train").unwrap().get("steps").and_then(Value::as_integer), Some(7));
+        assert!(g.config.get("legacy").is_some());
+        assert_eq!(g.generate.as_ref().map(|x| &x.spec), default.generate.as_ref().map(|x| &x.spec));
+        // Each scene its own run and slice key; the hash does not depend on the output folder.
+        assert_ne!(g.hash, h.hash);
+        assert_ne!(g.shard_key, h.shard_key);
+        assert_eq!(old(&plan_in("out-2"), "g").hash, g.hash);
+        // A key the scene does not set is an error naming it.
+        std::fs::write(dir.join("bench.toml"), body.replace("\"train.steps\"]", "\"train.nonexistent\"]")).unwrap();
+        let file = BenchFile::load(&dir.join("bench.toml")).unwrap();
+        let e = plan(&file, Some("p"), &dir).map(|_| ()).unwrap_err();
+        assert!(format!("{e:#}").contains("train.nonexistent"), "{e:#}");
         std::fs::remove_dir_all(dir).ok();
     }
 

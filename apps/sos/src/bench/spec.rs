@@ -25,6 +25,10 @@
 //! program = "../target/builds/b3a6cd8/sos"
 //! config = "../target/builds/b3a6cd8/src/configs/synthetic.toml"
 //! scenes = ["object-centric"]
+//! [methods.older-build-on-layouts]             # the same, given each scene's generated layout
+//! program = "../target/builds/b3a6cd8/sos"
+//! config = "older-colmap.toml"
+//! scene_keys = ["scene.path", "train.steps"]
 //!
 //! [[sweep]]
 //! name = "head-steps"
@@ -143,6 +147,11 @@ pub struct MethodSpec {
     /// The scene's config and overrides do not apply: the row is that build's run, set beside
     /// the scene's other rows.
     pub config: Option<PathBuf>,
+    /// With `program`: dotted keys the other build's config takes from each scene's config as
+    /// this file resolves it (e.g. `scene.path` of a generated layout, `train.steps`), for keys
+    /// both builds read alike. A generated scene is then written before the run.
+    #[serde(default)]
+    pub scene_keys: Vec<String>,
 }
 
 /// How a sweep combines the lists of its `vary` keys.
@@ -285,6 +294,9 @@ impl BenchFile {
                         names(self.scenes.keys())
                     );
                 }
+            }
+            if m.program.is_none() && !m.scene_keys.is_empty() {
+                bail!("{file}: method `{name}` sets `scene_keys`, which only a method run by another build (`program`) takes");
             }
             match (&m.program, &m.config) {
                 (None, None) => {}
@@ -444,6 +456,8 @@ config = "a.toml"
         assert!(e.contains("method `old`") && e.contains("`config`"), "{e}");
         let e = with("program = \"old/sos\"\nconfig = \"old.toml\"\nset = { seed = 1 }\n").unwrap_err();
         assert!(e.contains("`set`"), "{e}");
+        let e = with("scene_keys = [\"scene.path\"]\n").unwrap_err();
+        assert!(e.contains("method `old`") && e.contains("`scene_keys`"), "{e}");
         let e = with("scenes = [\"b\"]\n").unwrap_err();
         assert!(e.contains("method `old`") && e.contains("scene `b`"), "{e}");
         let e = with(
