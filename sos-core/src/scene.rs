@@ -212,6 +212,20 @@ impl Scene {
         Ok(())
     }
 
+    /// Why the novel camera path cannot be rendered (a camera with a non-finite pose or a
+    /// degenerate lens, as a path derived from unusual poses may have); `None` when it can.
+    /// Loading does not refuse such a path, since training never renders it.
+    pub fn render_path_problem(&self) -> Option<String> {
+        self.render_path.iter().enumerate().find_map(|(i, cam)| {
+            cam.validate().err().map(|e| {
+                format!(
+                    "camera {i} of the scene's novel camera path: {e}; the path is derived from the views' poses, \
+                     so render cameras of your own instead (`sos export --what masks --poses FILE`)"
+                )
+            })
+        })
+    }
+
     /// Whether every held-out view has a ground-truth mask.
     pub fn has_test_masks(&self) -> bool {
         !self.test.is_empty() && self.test.iter().all(|&i| self.views[i].mask.is_some())
@@ -306,6 +320,18 @@ mod tests {
         scene.near = 5.3;
         let err = scene.validate().unwrap_err();
         assert!(err.contains("`near`") && err.contains("5.196"), "{err}");
+    }
+
+    #[test]
+    fn a_camera_path_with_a_broken_camera_is_named_without_refusing_the_scene() {
+        let mut scene = blank_scene(2, 4, 4);
+        scene.render_path = vec![scene.views[0].camera.clone(), scene.views[1].camera.clone()];
+        assert_eq!(scene.render_path_problem(), None);
+        scene.render_path[1].cam_to_world[0][3] = f32::NAN;
+        let why = scene.render_path_problem().expect("a NaN pose passes");
+        assert!(why.contains("camera 1") && why.contains("NaN") && why.contains("--poses"), "{why}");
+        // Training never renders the path: the scene itself still loads.
+        assert_eq!(scene.validate(), Ok(()));
     }
 
     #[test]

@@ -256,6 +256,9 @@ impl Exporter<'_> {
             eprintln!("note: the scene has no novel camera path (e.g. `render_path_views = 0`); no frames or GIF");
             return Ok(serde_json::json!({ "frames": 0 }));
         }
+        if let Some(why) = self.session.scene.render_path_problem() {
+            anyhow::bail!("{why}");
+        }
         let gif_path = self.out.join("path.gif");
         let mut animation = match gif {
             true => Some(animation::GifWriter::create(&gif_path, path[0].width as usize, path[0].height as usize)?),

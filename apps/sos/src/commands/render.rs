@@ -64,6 +64,9 @@ pub(super) fn render_camera_path(
     progress: bool,
 ) -> anyhow::Result<()> {
     let path = &session.scene.render_path;
+    if let Some(why) = session.scene.render_path_problem() {
+        anyhow::bail!("{why}");
+    }
     let bar = if progress { ProgressBar::new(path.len() as u64) } else { ProgressBar::hidden() };
     for (i, cam) in path.iter().enumerate() {
         let name = format!("{i:04}");
