@@ -354,17 +354,7 @@ impl RunContext<'_> {
                 let bytes = std::fs::read(&program)
                     .with_context(|| format!("{fpath}: method `{method}`: reading {}", program.display()))?;
                 let binary = hash_bytes(&bytes);
-                let text = match generate {
-                    // Named by its spec, not by the machine's path to it.
-                    Some(g) => {
-                        let mut c = config.clone();
-                        overlay::set(&mut c, "scene.path", Value::String("<generated>".into()))?;
-                        let spec = toml::to_string(&g.spec).context("serialising a generated scene")?;
-                        format!("{}\n# generate\n{spec}", toml::to_string(&c).context("serialising a run config")?)
-                    }
-                    None => toml::to_string(&config).context("serialising a run config")?,
-                };
-                hash_text(&format!("# program sha256 = {binary}\n{text}"))
+                hash_text(&format!("# program sha256 = {binary}\n{}", config_text(&config, generate)))
             }
         };
         Ok(PlannedRun {
@@ -547,6 +537,15 @@ fn slug(label: &str) -> String {
 /// path), the generated scene's spec, the curve sampling and the version of the rules that
 /// derive settings from the scene.
 fn run_hash(config: &Value, generate: Option<&Generate>, curve_points: usize) -> String {
+    let mut text = config_text(config, generate);
+    text.push_str(&format!("\n# curve_points = {curve_points}\n"));
+    // Settings derived from the scene are not in the config: their rules' version is.
+    text.push_str(&format!("# derivation = {}\n", sos_core::derived::DERIVATION_VERSION));
+    hash_text(&text)
+}
+
+/// A config as hashed: a generated scene named by its spec, not by the machine's path to it.
+fn config_text(config: &Value, generate: Option<&Generate>) -> String {
     let mut c = config.clone();
     if generate.is_some() {
         if let Some(scene) = c.get_mut("scene").and_then(Value::as_table_mut) {
@@ -558,10 +557,7 @@ fn run_hash(config: &Value, generate: Option<&Generate>, curve_points: usize) ->
         text.push_str("\n# generate\n");
         text.push_str(&toml::to_string(&g.spec).unwrap_or_default());
     }
-    text.push_str(&format!("\n# curve_points = {curve_points}\n"));
-    // Settings derived from the scene are not in the config: their rules' version is.
-    text.push_str(&format!("# derivation = {}\n", sos_core::derived::DERIVATION_VERSION));
-    hash_text(&text)
+    text
 }
 
 /// Sections of a run config that stage 1 never reads: the head, its teacher, miner and
