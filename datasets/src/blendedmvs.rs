@@ -14,18 +14,23 @@
 //!
 //! `layout = "auto"` (default) picks `original` when `cams/` exists, else `nsvf`. Optional masks
 //! in `masks/` with the images' stems (foreground = value > 0.5). Extent: `bbox.txt` (NSVF), or
-//! config `aabb`, else unbounded around the point the cameras look at; `near` defaults to
-//! 0.9 x the smallest depth bound in the original layout, 0 in the NSVF layout.
+//! config `aabb`; else, in the original layout, forward-facing when the training cameras look
+//! one way (NDC between the cameras' depth ranges, scaled and recentred as LLFF; see
+//! [`crate::forward_facing`]); else unbounded around the point the cameras look at. `near`
+//! defaults to 0.9 x the smallest depth bound in the original layout, 0 in the NSVF layout.
 
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use sos_core::camera::Vec3;
+use sos_core::camera::{Camera, Vec3};
 use sos_core::plugin::dataset::DatasetError;
-use sos_core::scene::{Scene, View};
+use sos_core::scene::{Scene, SceneExtent, View};
 
 use crate::adapter::{hold_out_views, orbit_scene, register_dataset, require_folder};
+use crate::forward_facing::{
+    check_bd_factor, forward_facing_scene, forward_facing_setting, looks_one_way, Processing, FORWARD_PATH_VIEWS,
+};
 use crate::image_files::{check_images_for, find_with_stem, list_images, stem};
 use crate::pose::{self, Pose};
 use crate::tanks_temples::parse_c2w_opencv;
@@ -60,11 +65,30 @@ pub struct BlendedMvsConfig {
     pub aabb: Option<[Vec3; 2]>,
     /// Distance from the cameras below which nothing is sampled (default: see the module doc).
     pub near: Option<f32>,
+    /// Original layout: treat the capture as forward-facing (NDC between the cameras' depth
+    /// ranges, as LLFF). Absent: on when the training cameras look one way.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub forward_facing: Option<bool>,
+    /// Forward-facing captures: scale so the nearest depth becomes `1 / bd_factor` (default
+    /// 0.75, as LLFF); 0 disables scaling.
+    pub bd_factor: f64,
+    /// Forward-facing captures: express the poses in the frame of their average pose
+    /// (default true, as LLFF).
+    pub recenter: bool,
 }
 
 impl Default for BlendedMvsConfig {
     fn default() -> Self {
-        BlendedMvsConfig { path: PathBuf::new(), layout: Layout::Auto, hold_out_every: 8, aabb: None, near: None }
+        BlendedMvsConfig {
+            path: PathBuf::new(),
+            layout: Layout::Auto,
+            hold_out_every: 8,
+            aabb: None,
+            near: None,
+            forward_facing: None,
+            bd_factor: 0.75,
+            recenter: true,
+        }
     }
 }
 
@@ -94,20 +118,26 @@ fn derived_blendedmvs(
     root: &Path,
     scene: &sos_core::scene::Scene,
 ) -> Vec<sos_core::derived::DerivedSetting> {
-    match cfg.aabb {
-        Some(_) => Vec::new(),
-        None => {
-            let reason = match scene.extent {
-                sos_core::scene::SceneExtent::Bounded { .. } => "no `aabb`: the layout's bbox.txt",
-                _ if root.join("bbox.txt").is_file() => {
-                    "no `aabb`, and bbox.txt holds the cameras (a room, not an object's box): unbounded around \
-                     the point the training cameras look at"
-                }
-                _ => NO_AABB,
-            };
-            vec![crate::views::extent_setting(scene, reason)]
-        }
+    if cfg.aabb.is_some() {
+        return Vec::new();
     }
+    let mut out = Vec::new();
+    if cfg.forward_facing.is_none() && chosen_layout(cfg, root) == Layout::Original {
+        out.push(forward_facing_setting(scene, "forward_facing = false"));
+    }
+    let reason = match scene.extent {
+        SceneExtent::Bounded { .. } => "no `aabb`: the layout's bbox.txt",
+        SceneExtent::ForwardFacing { .. } => {
+            "forward-facing: NDC between the cameras' depth ranges, scaled and recentred as LLFF"
+        }
+        _ if root.join("bbox.txt").is_file() => {
+            "no `aabb`, and bbox.txt holds the cameras (a room, not an object's box): unbounded around \
+             the point the training cameras look at"
+        }
+        _ => NO_AABB,
+    };
+    out.push(crate::views::extent_setting(scene, reason));
+    out
 }
 
 /// A parsed `<id>_cam.txt`.
@@ -209,8 +239,14 @@ fn chosen_layout(cfg: &BlendedMvsConfig, root: &Path) -> Layout {
 /// Loads a BlendedMVS scene from folder `root` (the config's `path` already resolved).
 pub fn load_blendedmvs(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetError> {
     check_aabb(root, cfg.aabb)?;
+    check_bd_factor(root, cfg.bd_factor)?;
     require_folder(root, "a BlendedMVS scene folder (blended_images/ + cams/, or rgb/ + pose/)")?;
     match chosen_layout(cfg, root) {
+        Layout::Nsvf if cfg.forward_facing == Some(true) => Err(invalid(
+            root,
+            "config key `forward_facing = true` needs depth ranges, which the NSVF layout does not store; \
+             drop the key or use the original layout",
+        )),
         Layout::Nsvf => load_nsvf(cfg, root),
         _ => load_original(cfg, root),
     }
@@ -250,7 +286,7 @@ fn load_original(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetEr
             }
         }
     }
-    let loaded: Vec<(View, f64)> = images
+    let loaded: Vec<(View, [f64; 2])> = images
         .par_iter()
         .map(|img_path| {
             let s = stem(img_path);
@@ -270,15 +306,25 @@ fn load_original(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetEr
             };
             let camera = checked_camera(&cam_path, "extrinsic", &pose, &k)?;
             let mask = optional_mask(masks_for(root, s).as_deref(), image.width, image.height)?;
-            Ok((View { name: s.to_string(), camera, image, mask }, cam.depth[0]))
+            Ok((View { name: s.to_string(), camera, image, mask }, cam.depth))
         })
         .collect::<Result<_, DatasetError>>()?;
-    let min_depth = loaded.iter().map(|l| l.1).fold(f64::INFINITY, f64::min);
+    let min_depth = loaded.iter().map(|l| l.1[0]).fold(f64::INFINITY, f64::min);
+    let max_depth = loaded.iter().map(|l| l.1[1]).fold(0.0, f64::max);
     let views: Vec<View> = loaded.into_iter().map(|l| l.0).collect();
     let (train, test) = hold_out_views(root, views.len(), cfg.hold_out_every)?;
+    let name = scene_name(root, "blendedmvs");
+    if cfg.aabb.is_none() && cfg.forward_facing != Some(false) {
+        let cams: Vec<&Camera> = train.iter().map(|&i| &views[i].camera).collect();
+        if cfg.forward_facing == Some(true) || looks_one_way(&cams) {
+            let how =
+                Processing { bd_factor: cfg.bd_factor, recenter: cfg.recenter, render_path_views: FORWARD_PATH_VIEWS };
+            return Ok(forward_facing_scene(name, views, train, test, [min_depth, max_depth], how));
+        }
+    }
     let extent = extent_of(&views, &train, cfg.aabb);
     let near = cfg.near.unwrap_or((0.9 * min_depth) as f32);
-    Ok(orbit_scene(scene_name(root, "blendedmvs"), views, train, test, extent, near))
+    Ok(orbit_scene(name, views, train, test, extent, near))
 }
 
 /// NSVF's `intrinsics.txt`: 4x4 or 3x3 K, or the DeepVoxels-style `f cx cy 0` first line.

@@ -22,22 +22,35 @@
 //! model does not register are skipped (COLMAP often fails to register a few). Views `0, k,
 //! 2k, …` (`hold_out_every`) are held out. Images may be a uniformly downscaled copy of the
 //! ones COLMAP saw (e.g. `images = "images_4"`): intrinsics are scaled to the image size.
+//!
+//! Extent, where the config gives no `aabb`: when the training cameras look one way (a
+//! forward-facing capture, the test LLFF uses to choose `spherify`) and the model's
+//! `points3D` gives the depths of the content the views see, the capture is processed as
+//! LLFF's `imgs2poses` and `load_llff_data` would process it (depth bounds from each view's
+//! points, trimmed at 0.1 % each end; scaled by `bd_factor`, recentred, NDC). Otherwise it is
+//! unbounded around the point the training cameras look at.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use sos_core::camera::Vec3;
+use sos_core::camera::{Camera, Vec3};
+use sos_core::derived::DerivedSetting;
 use sos_core::plugin::dataset::DatasetError;
-use sos_core::scene::{Scene, View};
+use sos_core::scene::{Scene, SceneExtent, View};
 
 use crate::adapter::{hold_out_views, orbit_scene, register_dataset, require_folder};
+use crate::colmap_points::{read_points, SparsePoint};
+use crate::forward_facing::{
+    check_bd_factor, depth_bounds, forward_facing_scene, forward_facing_setting, looks_one_way, Processing,
+    FORWARD_PATH_VIEWS,
+};
 use crate::image_files::find_with_stem;
 use crate::pose::{self, Pose};
 use crate::text::{invalid, number, read_bytes, read_text, Reader};
 use crate::views::{
-    check_aabb, checked_camera, extent_of, optional_mask, scene_name, unbounded_unless_aabb, Intrinsics,
+    check_aabb, checked_camera, extent_of, extent_setting, optional_mask, scene_name, Intrinsics, NO_AABB,
 };
 
 /// Configuration of the `colmap` dataset (`[scene] kind = "colmap"`).
@@ -54,11 +67,24 @@ pub struct ColmapConfig {
     pub hold_out_every: usize,
     /// Use only the pinhole part of distorted perspective cameras (default false: refuse).
     pub ignore_distortion: bool,
-    /// Scene box `[min, max]` in COLMAP's world frame; default: unbounded around the point the
-    /// cameras look at.
+    /// Scene box `[min, max]` in COLMAP's world frame; default: forward-facing when the
+    /// cameras look one way and the model's points give depth bounds, else unbounded around
+    /// the point the cameras look at.
     pub aabb: Option<[Vec3; 2]>,
-    /// Distance from the cameras below which nothing is sampled (default 0).
+    /// Distance from the cameras below which nothing is sampled (default 0; forward-facing
+    /// captures start at their nearest point instead).
     pub near: f32,
+    /// Treat the capture as forward-facing (NDC between the depth bounds of the model's
+    /// points, as LLFF). Absent: chosen from the cameras, on when they look one way
+    /// (see [`FORWARD_FACING_FROM`](crate::forward_facing::FORWARD_FACING_FROM)) and `points3D` gives depth bounds.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub forward_facing: Option<bool>,
+    /// Forward-facing captures: scale so the nearest bound becomes `1 / bd_factor` (default
+    /// 0.75, as LLFF); 0 disables scaling.
+    pub bd_factor: f64,
+    /// Forward-facing captures: express the poses in the frame of their average pose (default
+    /// true, as LLFF; the NDC frame needs the mean camera looking along −Z).
+    pub recenter: bool,
 }
 
 impl Default for ColmapConfig {
@@ -71,6 +97,9 @@ impl Default for ColmapConfig {
             ignore_distortion: false,
             aabb: None,
             near: 0.0,
+            forward_facing: None,
+            bd_factor: 0.75,
+            recenter: true,
         }
     }
 }
@@ -84,9 +113,23 @@ register_dataset!(
 );
 
 /// The extent this adapter chose where the config gives no `aabb`.
-fn derived_colmap(cfg: &ColmapConfig, _root: &Path, scene: &Scene) -> Vec<sos_core::derived::DerivedSetting> {
-    unbounded_unless_aabb(cfg.aabb, scene)
+fn derived_colmap(cfg: &ColmapConfig, _root: &Path, scene: &Scene) -> Vec<DerivedSetting> {
+    if cfg.aabb.is_some() {
+        return Vec::new();
+    }
+    let forward = matches!(scene.extent, SceneExtent::ForwardFacing { .. });
+    let mut out = Vec::new();
+    if cfg.forward_facing.is_none() {
+        out.push(forward_facing_setting(scene, "the model has no points3D to bound the content's depth"));
+    }
+    let reason = if forward { FORWARD_EXTENT } else { NO_AABB };
+    out.push(extent_setting(scene, reason));
+    out
 }
+
+/// Why a forward-facing capture gets its extent.
+const FORWARD_EXTENT: &str =
+    "forward-facing: NDC between the depths of the points3D points the views see, scaled and recentred as LLFF";
 
 /// COLMAP camera model: name, parameter count, whether the first parameter is a single focal
 /// length, whether it is a fisheye projection.
@@ -381,6 +424,7 @@ fn mask_path(root: &Path, name: &str) -> Option<PathBuf> {
 /// Loads a COLMAP scene from folder `root` (the config's `path` already resolved).
 pub fn load_colmap(cfg: &ColmapConfig, root: &Path) -> Result<Scene, DatasetError> {
     check_aabb(root, cfg.aabb)?;
+    check_bd_factor(root, cfg.bd_factor)?;
     require_folder(root, "a COLMAP scene folder with images/ and sparse/0/")?;
     let model_dir = find_model_dir(cfg, root)?;
     let (cams, mut images, images_file) = read_model(&model_dir)?;
@@ -460,6 +504,50 @@ pub fn load_colmap(cfg: &ColmapConfig, root: &Path) -> Result<Scene, DatasetErro
         })
         .collect::<Result<_, DatasetError>>()?;
     let (train, test) = hold_out_views(root, views.len(), cfg.hold_out_every)?;
+    let name = scene_name(root, "colmap");
+    if cfg.aabb.is_none() && cfg.forward_facing != Some(false) {
+        let cams: Vec<&Camera> = train.iter().map(|&i| &views[i].camera).collect();
+        if cfg.forward_facing == Some(true) || looks_one_way(&cams) {
+            let ids: Vec<i64> = images.iter().map(|im| im.id).collect();
+            let points = read_points(&model_dir)?;
+            match points.as_deref().and_then(|p| content_bounds(&views, &ids, p)) {
+                Some(bounds) => {
+                    let how = Processing {
+                        bd_factor: cfg.bd_factor,
+                        recenter: cfg.recenter,
+                        render_path_views: FORWARD_PATH_VIEWS,
+                    };
+                    return Ok(forward_facing_scene(name, views, train, test, bounds, how));
+                }
+                None if cfg.forward_facing == Some(true) => {
+                    return Err(invalid(
+                        &model_dir.join("points3D.bin"),
+                        "config key `forward_facing = true` needs the content's depth bounds: points3D.bin or \
+                         points3D.txt with points in front of the cameras; add the model's points or drop the key",
+                    ))
+                }
+                None => {}
+            }
+        }
+    }
     let extent = extent_of(&views, &train, cfg.aabb);
-    Ok(orbit_scene(scene_name(root, "colmap"), views, train, test, extent, cfg.near))
+    Ok(orbit_scene(name, views, train, test, extent, cfg.near))
+}
+
+/// The nearest and farthest depth over the views (`ids` their image ids) of the `points` each
+/// observes (by its track; every point when no track names the view), each view's bounds
+/// trimmed as [`depth_bounds`] does. `None` when no view sees a point.
+fn content_bounds(views: &[View], ids: &[i64], points: &[SparsePoint]) -> Option<[f64; 2]> {
+    let mut bounds: Option<[f64; 2]> = None;
+    for (view, &id) in views.iter().zip(ids) {
+        let tracked: Vec<[f64; 3]> = points.iter().filter(|p| p.images.contains(&id)).map(|p| p.xyz).collect();
+        let seen = if tracked.is_empty() { points.iter().map(|p| p.xyz).collect() } else { tracked };
+        if let Some([lo, hi]) = depth_bounds(&view.camera, seen) {
+            bounds = Some(match bounds {
+                Some([a, b]) => [a.min(lo), b.max(hi)],
+                None => [lo, hi],
+            });
+        }
+    }
+    bounds.filter(|[lo, hi]| *lo > 0.0 && hi > lo)
 }

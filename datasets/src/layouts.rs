@@ -109,7 +109,8 @@ impl Format {
     }
 
     /// Opens a layout written to `dir` with the loader's defaults, except that poses are kept
-    /// in the written frame (no LLFF recentring, scaling or spherify, no NeRF++ normalisation) and, when
+    /// in the written frame (no LLFF or forward-facing COLMAP and BlendedMVS recentring and scaling, no
+    /// spherify, no NeRF++ normalisation) and, when
     /// given, `aabb` bounds the scene where the loader takes one.
     pub fn open_raw(self, dir: &Path, aabb: Option<[Vec3; 2]>) -> Result<Scene, DatasetError> {
         let root = self.scene_dir(dir);
@@ -131,10 +132,11 @@ impl Format {
                 load_blender(&cfg, &root)
             }
             Format::ColmapBin | Format::ColmapTxt => {
-                load_colmap(&ColmapConfig { path, aabb, ..Default::default() }, &root)
+                load_colmap(&ColmapConfig { path, aabb, bd_factor: 0.0, recenter: false, ..Default::default() }, &root)
             }
             Format::BlendedMvs => {
-                load_blendedmvs(&BlendedMvsConfig { path, layout: Layout::Original, aabb, ..Default::default() }, &root)
+                let keep_frame = BlendedMvsConfig { bd_factor: 0.0, recenter: false, ..Default::default() };
+                load_blendedmvs(&BlendedMvsConfig { path, layout: Layout::Original, aabb, ..keep_frame }, &root)
             }
             Format::Nsvf => {
                 load_blendedmvs(&BlendedMvsConfig { path, layout: Layout::Nsvf, aabb, ..Default::default() }, &root)

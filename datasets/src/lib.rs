@@ -13,8 +13,9 @@
 //! the adapters), [`npy`] (`.npy` reading/writing), [`pose`] (pose algebra, LLFF
 //! recentring, spherify and spirals, convention conversions), [`export`] (writing scenes in
 //! every layout), [`layouts`] (write and reopen one scene in each layout), [`text`] (camera
-//! and annotation files), [`views`] (checked cameras, images and masks) and [`image_files`]
-//! (image and mask lookup).
+//! and annotation files), [`views`] (checked cameras, images and masks), [`image_files`]
+//! (image and mask lookup), [`colmap_points`] (COLMAP's sparse points) and [`forward_facing`]
+//! (forward-facing captures read from layouts without an NDC frame).
 
 #![warn(missing_docs)]
 
@@ -23,7 +24,9 @@ pub mod blendedmvs;
 pub mod blender;
 pub mod co3d;
 pub mod colmap;
+pub mod colmap_points;
 pub mod export;
+pub mod forward_facing;
 pub mod image_files;
 pub mod layouts;
 pub mod llff;

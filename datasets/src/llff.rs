@@ -29,6 +29,7 @@ use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, SceneExtent, View};
 
 use crate::adapter::{hold_out_views, register_dataset, require_folder};
+use crate::forward_facing::{self, FORWARD_FACING_FROM};
 use crate::image_files::{find_with_stem, list_images, load_mask, load_mask_reduced, stem};
 use crate::npy::read_npy;
 use crate::pose::{self, Pose};
@@ -56,7 +57,7 @@ pub struct LlffConfig {
     pub bd_factor: f64,
     /// Spherical pose normalisation of 360° captures, as the reference. Absent: chosen from
     /// the cameras, on when their viewing directions spread like a capture around the scene
-    /// (mean unit viewing direction shorter than [`SPHERIFY_BELOW`]), off for forward-facing
+    /// (mean unit viewing direction shorter than [`FORWARD_FACING_FROM`]), off for forward-facing
     /// captures.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub spherify: Option<bool>,
@@ -266,7 +267,9 @@ pub fn read_llff_geometry(cfg: &LlffConfig, npy_path: &Path) -> Result<LlffGeome
     }
     let mut bounds = [min_bound * sc, max_bound * sc];
     let mut sphere_path = None;
-    if cfg.spherify.unwrap_or_else(|| mean_viewing_direction(&poses) < SPHERIFY_BELOW) {
+    // Pose column 2 is "back": its mean has the length of the viewing directions' mean.
+    let backs = poses.iter().map(|p| [0, 1, 2].map(|k| p[k][2] as f32));
+    if cfg.spherify.unwrap_or_else(|| forward_facing::mean_viewing_direction(backs) < FORWARD_FACING_FROM) {
         let s = pose::spherify(&poses, cfg.render_path_views).ok_or_else(|| {
             invalid(
                 npy_path,
@@ -279,21 +282,6 @@ pub fn read_llff_geometry(cfg: &LlffConfig, npy_path: &Path) -> Result<LlffGeome
         sphere_path = Some(s.path);
     }
     Ok(LlffGeometry { poses, hwf: rows[0].hwf, bounds, sphere_path })
-}
-
-/// With `spherify` unset, captures whose mean unit viewing direction is shorter than this are
-/// spherified: forward-facing captures keep about 1 (flower: 0.99), cameras around a scene
-/// far less (0 for a full circle); 0.7 is an angular spread of about 45° around the mean.
-pub const SPHERIFY_BELOW: f64 = 0.7;
-
-/// Length of the mean of the cameras' unit viewing directions (pose column 2 is "back").
-fn mean_viewing_direction(poses: &[Pose]) -> f64 {
-    let mut sum = [0.0f64; 3];
-    for p in poses {
-        let n = (0..3).map(|k| p[k][2] * p[k][2]).sum::<f64>().sqrt().max(1e-12);
-        (0..3).for_each(|k| sum[k] += p[k][2] / n);
-    }
-    (0..3).map(|k| sum[k] * sum[k]).sum::<f64>().sqrt() / poses.len().max(1) as f64
 }
 
 /// What the adapter chose where the config left `spherify` unset.

@@ -155,7 +155,7 @@ pub fn llff_spiral(poses: &[Pose], near: f64, far: f64, n: usize) -> Vec<Pose> {
 }
 
 /// numpy's default (linear) percentile.
-fn percentile(v: &mut [f64], q: f64) -> f64 {
+pub(crate) fn percentile(v: &mut [f64], q: f64) -> f64 {
     v.sort_by(f64::total_cmp);
     let pos = q / 100.0 * (v.len() - 1) as f64;
     let (lo, hi) = (pos.floor() as usize, pos.ceil() as usize);

@@ -15,7 +15,7 @@ use proptest::prelude::*;
 use proptest::test_runner::{Config, TestRunner};
 use sos_datasets::layouts::Format;
 use sos_datasets::synthetic::{generate, Rig, SyntheticConfig};
-use sos_datasets::{blendedmvs, co3d, colmap, npy, tanks_temples};
+use sos_datasets::{blendedmvs, co3d, colmap, colmap_points, npy, tanks_temples};
 
 fn cases() -> u32 {
     std::env::var("SOS_FUZZ_CASES").ok().and_then(|v| v.parse().ok()).unwrap_or(1000)
@@ -30,16 +30,14 @@ fn runner(cases: u32) -> TestRunner {
 fn seed_dir(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("sos-fuzz-seed-{}-{name}", std::process::id()));
     std::fs::remove_dir_all(&dir).ok();
-    let scene = generate(&SyntheticConfig {
-        rig: Rig::ObjectCentric,
-        width: 24,
-        height: 16,
-        views: 6,
-        hold_out_every: 3,
-        ..Default::default()
-    });
+    let scene = |rig| {
+        generate(&SyntheticConfig { rig, width: 24, height: 16, views: 6, hold_out_every: 3, ..Default::default() })
+    };
+    let (orbit, forward) = (scene(Rig::ObjectCentric), scene(Rig::ForwardFacing));
     for f in Format::ALL {
-        f.write(&scene, &dir.join(f.name())).unwrap();
+        // COLMAP reads its points only for captures that look one way.
+        let s = if matches!(f, Format::ColmapBin | Format::ColmapTxt) { &forward } else { &orbit };
+        f.write(s, &dir.join(f.name())).unwrap();
     }
     dir
 }
@@ -232,6 +230,8 @@ fn parse(path: &Path, bytes: &[u8]) -> Option<bool> {
         "images.bin" => colmap::parse_images_bin(path, bytes).is_ok(),
         "cameras.txt" => colmap::parse_cameras_txt(path, &text()).is_ok(),
         "images.txt" => colmap::parse_images_txt(path, &text()).is_ok(),
+        "points3D.bin" => colmap_points::parse_points_bin(path, bytes).is_ok(),
+        "points3D.txt" => colmap_points::parse_points_txt(path, &text()).is_ok(),
         "intrinsics.txt" => blendedmvs::parse_nsvf_intrinsics(path, &text()).is_ok(),
         "bbox.txt" => blendedmvs::parse_bbox(path, &text()).is_ok(),
         "frame_annotations.jgz" => co3d::parse_jgz::<Vec<co3d::FrameAnnotation>>(path, bytes).is_ok(),

@@ -11,7 +11,8 @@ use sos_datasets::co3d::{read_jgz, write_jgz, FrameAnnotation, SequenceAnnotatio
 use sos_datasets::layouts::{Format, CO3D_CATEGORY, CO3D_SEQUENCE};
 use sos_datasets::synthetic::{generate, Rig, SyntheticConfig, OBJECT_CENTRE, OBJECT_RADIUS, ROOM_MAX, ROOM_MIN};
 use sos_datasets::{
-    load_co3d, load_colmap, load_llff, load_tanks_temples, Co3dConfig, ColmapConfig, LlffConfig, TanksTemplesConfig,
+    load_blendedmvs, load_co3d, load_colmap, load_llff, load_tanks_temples, BlendedMvsConfig, Co3dConfig, ColmapConfig,
+    LlffConfig, TanksTemplesConfig,
 };
 
 fn temp_dir(name: &str) -> PathBuf {
@@ -107,6 +108,20 @@ fn forward_facing_rig_round_trips_where_the_layout_can_hold_it() {
         format.write(&s, &d).unwrap();
         let loaded = format.open_raw(&d, None).unwrap_or_else(|e| panic!("{format:?}: {e}"));
         assert_same_views(&s, &loaded, format.name());
+        // COLMAP's points and BlendedMVS's depth ranges carry the depth bounds: a
+        // forward-facing extent holding the original's, its near bound 10 % closer as the LLFF
+        // loader takes it, both a little wider where each view measures the points along its
+        // own axis.
+        if matches!(format, Format::ColmapBin | Format::ColmapTxt | Format::BlendedMvs) {
+            let (SceneExtent::ForwardFacing { near: n0, far: f0, .. }, SceneExtent::ForwardFacing { near, far, .. }) =
+                (s.extent, loaded.extent)
+            else {
+                panic!("{format:?}: {:?}", loaded.extent)
+            };
+            let holds = near <= 0.9 * n0 && far >= f0;
+            let tight = near >= 0.8 * n0 && far <= 1.05 * f0;
+            assert!(holds && tight, "{format:?}: {near} to {far} vs {n0} to {f0}");
+        }
     }
     std::fs::remove_dir_all(dir).ok();
 }
@@ -320,6 +335,59 @@ fn llff_spherify_is_chosen_from_the_camera_layout() {
         let notes = sos_core::plugin::DatasetConfig::derived(&cfg, Path::new(""), &loaded);
         let note = notes.iter().find(|d| d.key == "scene.spherify").expect("a spherify note");
         assert_eq!(note.value, spherified.to_string(), "{rig:?}");
+        std::fs::remove_dir_all(dir).ok();
+    }
+}
+
+/// A COLMAP model of a forward-facing capture is read as LLFF would read it, with depth
+/// bounds from its points; without points it falls back to the unbounded extent (and says
+/// why), and `forward_facing = true` then names the missing file.
+#[test]
+fn colmap_forward_facing_is_chosen_from_the_cameras_and_bounded_by_the_points() {
+    // BlendedMVS's original layout chooses the same way, bounded by its depth ranges.
+    for rig in [Rig::ObjectCentric, Rig::ForwardFacing] {
+        let s = scene(rig);
+        let dir = temp_dir(&format!("mvs-ff-{rig:?}"));
+        Format::BlendedMvs.write(&s, &dir).unwrap();
+        let cfg = BlendedMvsConfig { path: dir.clone(), ..Default::default() };
+        let loaded = load_blendedmvs(&cfg, &dir).unwrap();
+        loaded.validate().unwrap();
+        let forward = matches!(loaded.extent, SceneExtent::ForwardFacing { .. });
+        assert_eq!(forward, rig == Rig::ForwardFacing, "{rig:?}: {:?}", loaded.extent);
+        let notes = sos_core::plugin::DatasetConfig::derived(&cfg, Path::new(""), &loaded);
+        assert!(notes.iter().any(|d| d.key == "scene.forward_facing" && d.value == forward.to_string()), "{notes:?}");
+        let off = BlendedMvsConfig { forward_facing: Some(false), ..cfg.clone() };
+        assert!(matches!(load_blendedmvs(&off, &dir).unwrap().extent, SceneExtent::Unbounded { .. }));
+        std::fs::remove_dir_all(dir).ok();
+    }
+    for (rig, forward) in [(Rig::ObjectCentric, false), (Rig::ForwardFacing, true)] {
+        let s = scene(rig);
+        let dir = temp_dir(&format!("colmap-ff-{rig:?}"));
+        Format::ColmapBin.write(&s, &dir).unwrap();
+        let cfg = ColmapConfig { path: dir.clone(), ..Default::default() };
+        let loaded = load_colmap(&cfg, &dir).unwrap();
+        loaded.validate().unwrap();
+        assert_eq!(matches!(loaded.extent, SceneExtent::ForwardFacing { .. }), forward, "{rig:?}: {:?}", loaded.extent);
+        let notes = sos_core::plugin::DatasetConfig::derived(&cfg, Path::new(""), &loaded);
+        let note = notes.iter().find(|d| d.key == "scene.forward_facing").expect("a forward_facing note");
+        assert_eq!(note.value, forward.to_string(), "{rig:?}");
+        if forward {
+            // Scaled so the nearest point is at 1 / 0.75, the extent's near 10 % closer.
+            let SceneExtent::ForwardFacing { near, .. } = loaded.extent else { unreachable!() };
+            assert!((near - 0.9 / 0.75).abs() < 1e-4, "{near}");
+            assert_eq!(loaded.render_path.len(), 120);
+            // No points: unbounded, with the reason; forced forward-facing names the file.
+            std::fs::write(dir.join("sparse/0/points3D.bin"), 0u64.to_le_bytes()).unwrap();
+            let bare = load_colmap(&cfg, &dir).unwrap();
+            assert!(matches!(bare.extent, SceneExtent::Unbounded { .. }), "{:?}", bare.extent);
+            let notes = sos_core::plugin::DatasetConfig::derived(&cfg, Path::new(""), &bare);
+            assert!(notes.iter().any(|d| d.reason.contains("no points3D")), "{notes:?}");
+            let forced = ColmapConfig { forward_facing: Some(true), ..cfg.clone() };
+            let err = load_colmap(&forced, &dir).unwrap_err().to_string();
+            assert!(err.contains("points3D.bin") && err.contains("forward_facing"), "{err}");
+            let err = load_colmap(&ColmapConfig { bd_factor: -0.75, ..cfg.clone() }, &dir).unwrap_err().to_string();
+            assert!(err.contains("`bd_factor`"), "{err}");
+        }
         std::fs::remove_dir_all(dir).ok();
     }
 }
