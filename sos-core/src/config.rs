@@ -97,6 +97,15 @@ pub struct SegmentConfig {
     /// Evaluate the head only at samples whose compositing weight exceeds this (the density
     /// is frozen in stage 2, so skipped samples contribute at most this much); 0 disables.
     pub weight_threshold: f32,
+    /// Frozen renders (stage 2 and mask inference) stop a ray once its transmittance falls
+    /// below this, whatever `train.early_stop` says (a reference stage 1 marches every ray to
+    /// its end; a frozen field's colour then changes by at most this much); 0 disables.
+    pub early_stop: f32,
+    /// Frozen renders of a hierarchical (coarse + fine) field place their samples with its
+    /// proposal network, as stage 1 does. Off by default: the fine network alone marches the
+    /// occupancy-skipped candidates, several times fewer network evaluations for masks of the
+    /// same quality (`benchmarks/RESULTS.md`, reference NeRF stage 2). Other fields ignore it.
+    pub proposal: bool,
     /// Teacher input: rendered patches or captured photographs.
     pub teacher_source: TeacherSource,
     /// Reuse teacher features of identical patches while the field is frozen.
@@ -136,6 +145,8 @@ impl Default for SegmentConfig {
             lr: 1e-3,
             final_lr_factor: 0.3,
             weight_threshold: 1e-3,
+            early_stop: 1e-4,
+            proposal: false,
             teacher_source: TeacherSource::Rendered,
             cache_teacher: true,
             photometric_weight: 0.0,
@@ -567,6 +578,9 @@ impl RunConfig {
         // Mask inference of a checkpoint's head reads it too, whatever `steps` says.
         if !(0.0..1.0).contains(&g.weight_threshold) {
             return Err(invalid("segment.weight_threshold", "must be in [0, 1)"));
+        }
+        if !(0.0..1.0).contains(&g.early_stop) {
+            return Err(invalid("segment.early_stop", "must be in [0, 1)"));
         }
         if g.steps > 0 {
             // A patch's negatives are the other patches of its step: one alone has none.

@@ -310,7 +310,8 @@ fn rendering_empty_opaque_and_extreme_fields_stays_finite() {
             for (early_stop, min_weight) in [(0.0, 0.0), (1e-4, 1e-4)] {
                 let what = format!("σ={sigma:e} hierarchical={} prune={early_stop}", hierarchical.is_some());
                 let field = Constant { sigma, hierarchical };
-                let options = RenderOptions { march, early_stop, min_weight, memory: MemoryBudget::unlimited() };
+                let options =
+                    RenderOptions { proposal: true, march, early_stop, min_weight, memory: MemoryBudget::unlimited() };
                 let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
                 let mut r = render(&field, ctx, &rays, options, true, &mut rng);
                 r.composite();
@@ -345,6 +346,7 @@ fn rendering_empty_opaque_and_extreme_fields_stays_finite() {
         let eval = |p: &[Vec3]| p.iter().flat_map(|p| [p[0], -p[1]]).collect::<Vec<f32>>();
         let channels = ExtraChannels { dim: 2, min_weight: 1e-3, eval: &eval };
         let options = RenderOptions {
+            proposal: true,
             march: MarchOptions { steps: 32, stratified: false },
             early_stop: 1e-4,
             min_weight: 0.0,

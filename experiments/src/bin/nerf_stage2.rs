@@ -95,6 +95,10 @@ checkpoint_every = 0
 [render]
 chunk = 2048
 [segment]
+# The mode's skips hold for the frozen renders too (the segment defaults would drop the
+# proposal network and terminate rays whatever the mode says).
+proposal = {hierarchical}
+early_stop = {early_stop}
 steps = {steps}
 patches = {patches}
 patch_size = {patch_size}

@@ -40,6 +40,9 @@ pub struct RenderOptions {
     /// Drop samples whose compositing weight is at most this (only sound when the density is
     /// frozen, e.g. in stage 2); 0 keeps every sample before termination.
     pub min_weight: f32,
+    /// Hierarchical fields: place samples with the proposal (coarse) network; false: the
+    /// field's own network alone on the marched candidates.
+    pub proposal: bool,
     /// What a frozen render may keep between its passes (the density pass's state, the
     /// segmentation input); over it, work is recomputed and the result is the same.
     pub memory: MemoryBudget,
@@ -285,7 +288,8 @@ fn render_impl(
     let terminate = options.early_stop > 0.0 && (record || plain::early_termination_pass(field));
     let prune = terminate || options.min_weight > 0.0;
     let keeps_state = !record && plain::density_state_dim(field) > 0 && options.memory.density_state() > 0;
-    if prune && !keeps_state && plain::hierarchical(field).is_none() {
+    let hierarchical = plain::hierarchical(field).filter(|_| options.proposal);
+    if prune && !keeps_state && hierarchical.is_none() {
         let (samples, pruned) = prune_in_blocks(field, ctx, rays, options, rng);
         let seg_limits = SegLimits::new(field, pruned.candidates, seg_budget);
         let t_filter = timer.elapsed().as_secs_f64();
@@ -293,7 +297,7 @@ fn render_impl(
         let timing = RenderTiming { forward: timer.elapsed().as_secs_f64() - t_filter, kept: samples.len(), ..pruned };
         return Rendered::uncomposited(samples, (density, rgb, tape, seg_input), None, timing);
     }
-    let (candidates, coarse) = match plain::hierarchical(field) {
+    let (candidates, coarse) = match hierarchical {
         Some(h) => propose(field, ctx, rays, options, h, record, rng),
         None => (march_parallel(ctx, rays, options.march, rng), None),
     };
@@ -905,6 +909,7 @@ mod tests {
         let (extent, contraction, rays) = setup();
         let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
         let options = RenderOptions {
+            proposal: true,
             march: MarchOptions { steps: 128, stratified: false },
             early_stop: 0.0,
             min_weight: 0.0,
@@ -947,6 +952,7 @@ mod tests {
         assert!(rays.len() > 2 * INFERENCE_BLOCK && !rays.len().is_multiple_of(INFERENCE_BLOCK));
         let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
         let options = RenderOptions {
+            proposal: true,
             march: MarchOptions { steps: 64, stratified: false },
             early_stop: 1e-4,
             min_weight: 1e-3,
@@ -978,8 +984,20 @@ mod tests {
         let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
         let march = MarchOptions { steps: 64, stratified: false };
         for options in [
-            RenderOptions { march, early_stop: 1e-4, min_weight: 1e-3, memory: MemoryBudget::unlimited() },
-            RenderOptions { march, early_stop: 0.0, min_weight: 0.0, memory: MemoryBudget::unlimited() },
+            RenderOptions {
+                proposal: true,
+                march,
+                early_stop: 1e-4,
+                min_weight: 1e-3,
+                memory: MemoryBudget::unlimited(),
+            },
+            RenderOptions {
+                proposal: true,
+                march,
+                early_stop: 0.0,
+                min_weight: 0.0,
+                memory: MemoryBudget::unlimited(),
+            },
         ] {
             let rng = || rand_chacha::ChaCha8Rng::seed_from_u64(0);
             let plain = render(&field, ctx, &rays, options, false, &mut rng());
@@ -1039,6 +1057,7 @@ mod tests {
         let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
         for stratified in [false, true] {
             let options = RenderOptions {
+                proposal: true,
                 march: MarchOptions { steps: 64, stratified },
                 early_stop: 1e-4,
                 min_weight: 1e-3,
@@ -1065,11 +1084,23 @@ mod tests {
         let march = MarchOptions { steps: 256, stratified: false };
         let (full, _) = colours(
             &field,
-            RenderOptions { march, early_stop: 0.0, min_weight: 0.0, memory: MemoryBudget::unlimited() },
+            RenderOptions {
+                proposal: true,
+                march,
+                early_stop: 0.0,
+                min_weight: 0.0,
+                memory: MemoryBudget::unlimited(),
+            },
         );
         let (pruned, evaluated) = colours(
             &field,
-            RenderOptions { march, early_stop: 1e-4, min_weight: 1e-4, memory: MemoryBudget::unlimited() },
+            RenderOptions {
+                proposal: true,
+                march,
+                early_stop: 1e-4,
+                min_weight: 1e-4,
+                memory: MemoryBudget::unlimited(),
+            },
         );
         let hits = full.iter().filter(|c| c.acc > 0.5).count();
         assert!(hits > 20, "the ball covers part of the image ({hits} rays)");
@@ -1082,7 +1113,13 @@ mod tests {
         // Rays through the ball stop inside it, skipping at least the back half of the box.
         let (_, all) = colours(
             &field,
-            RenderOptions { march, early_stop: 0.0, min_weight: 1e-9, memory: MemoryBudget::unlimited() },
+            RenderOptions {
+                proposal: true,
+                march,
+                early_stop: 0.0,
+                min_weight: 1e-9,
+                memory: MemoryBudget::unlimited(),
+            },
         );
         assert!(evaluated + 100 * hits < all, "evaluated {evaluated} of {all} densities ({hits} rays hit)");
     }
@@ -1095,8 +1132,13 @@ mod tests {
     fn early_termination_without_a_density_pass_where_the_field_says_it_does_not_pay() {
         let field = Ball { termination_pass: false, ..Ball::new(None, false) };
         let march = MarchOptions { steps: 256, stratified: false };
-        let options =
-            |early_stop, min_weight| RenderOptions { march, early_stop, min_weight, memory: MemoryBudget::unlimited() };
+        let options = |early_stop, min_weight| RenderOptions {
+            proposal: true,
+            march,
+            early_stop,
+            min_weight,
+            memory: MemoryBudget::unlimited(),
+        };
         let frozen = |field: &Ball| {
             let (extent, contraction, rays) = setup();
             let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
@@ -1132,6 +1174,7 @@ mod tests {
         let (want, _) = colours(
             &dense,
             RenderOptions {
+                proposal: true,
                 march: MarchOptions { steps: 2048, stratified: false },
                 early_stop: 0.0,
                 min_weight: 0.0,
@@ -1143,6 +1186,7 @@ mod tests {
         let (got, _) = colours(
             &field,
             RenderOptions {
+                proposal: true,
                 march: MarchOptions { steps: 8, stratified: false },
                 early_stop: 0.0,
                 min_weight: 0.0,
@@ -1162,6 +1206,7 @@ mod tests {
         let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
         let options = RenderOptions {
+            proposal: true,
             march: MarchOptions { steps: 8, stratified: true },
             early_stop: 0.0,
             min_weight: 0.0,
@@ -1179,5 +1224,21 @@ mod tests {
             let coarse_span: f32 = coarse.samples.delta[coarse.samples.range(ray)].iter().sum();
             assert!((span - coarse_span).abs() < 1e-3 * (1.0 + coarse_span), "intervals partition the strata");
         }
+        // Without the proposal the field's own network alone marches the candidates: the
+        // render of the same field without hierarchical sampling, bit for bit.
+        let alone = RenderOptions {
+            proposal: false,
+            march: MarchOptions { steps: 64, stratified: false },
+            early_stop: 1e-4,
+            min_weight: 1e-3,
+            memory: MemoryBudget::unlimited(),
+        };
+        let (fine, _) = colours(&field, alone);
+        let (plain, _) = colours(&Ball::new(None, false), alone);
+        for (a, b) in fine.iter().zip(&plain) {
+            assert_eq!((a.rgb.map(f32::to_bits), a.acc.to_bits()), (b.rgb.map(f32::to_bits), b.acc.to_bits()));
+        }
+        assert!(fine.iter().any(|c| c.acc > 0.5), "rays hit the ball");
+        assert!(render(&field, ctx, &rays, alone, false, &mut rng).coarse.is_none());
     }
 }

@@ -52,7 +52,8 @@ impl FrozenRender {
         keep_seg_input: bool,
         rng: &mut impl Rng,
     ) -> Rendered {
-        let mut options = session.render_options(false);
+        // A jointly trained field is not frozen: it renders as stage 1 evaluates.
+        let mut options = if joint { session.render_options(false) } else { session.frozen_render_options() };
         options.memory = self.budget;
         let (field, ctx) = (session.field.as_ref(), session.render_context());
         let mut r = if joint {

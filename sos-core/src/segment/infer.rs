@@ -105,7 +105,7 @@ pub fn render_logits(session: &Session, head: &SegHead, camera: &Camera) -> Rend
         field,
         session.render_context(),
         &rays,
-        session.render_options(false),
+        session.frozen_render_options(),
         session.config.render.chunk,
         composited.then_some(&extra),
     );

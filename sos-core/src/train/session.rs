@@ -317,6 +317,7 @@ impl Session {
         };
         let steps = ((full as f32 * plain::detail_fraction(self.field.as_ref())).round() as usize).max(8);
         RenderOptions {
+            proposal: true,
             march: MarchOptions { steps, stratified },
             early_stop: t.early_stop,
             min_weight: if stratified { t.weight_threshold } else { 0.0 },
@@ -324,6 +325,13 @@ impl Session {
                 self.config.render.memory_gib.unwrap_or_else(|| crate::render::memory_budget::machine_default_gib().0),
             ),
         }
+    }
+
+    /// Render settings of the frozen field's renders (stage 2 and mask inference): the
+    /// evaluation settings with the segment's early termination and proposal choice.
+    pub fn frozen_render_options(&self) -> RenderOptions {
+        let g = &self.config.segment;
+        RenderOptions { early_stop: g.early_stop, proposal: g.proposal, ..self.render_options(false) }
     }
 
     /// The scene-level render context.
