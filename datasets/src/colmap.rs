@@ -223,17 +223,22 @@ fn model_index(path: &Path, id: i64, what: &str) -> Result<usize, DatasetError> 
         .ok_or_else(|| invalid(path, format!("{what}: unknown camera model id {id}; re-export the model")))
 }
 
+/// The data lines of a COLMAP text file (blank and `#` lines skipped): each named by its
+/// number (`line 12`) for errors, split at whitespace.
+pub(crate) fn data_lines(text: &str) -> impl Iterator<Item = (String, Vec<&str>)> {
+    text.lines().enumerate().filter_map(|(l, line)| {
+        let line = line.trim();
+        (!line.is_empty() && !line.starts_with('#'))
+            .then(|| (format!("line {}", l + 1), line.split_whitespace().collect()))
+    })
+}
+
 /// Parses `cameras.txt`.
 pub fn parse_cameras_txt(path: &Path, text: &str) -> Result<Vec<ColmapCamera>, DatasetError> {
     let mut cams = Vec::new();
-    for (l, line) in text.lines().enumerate() {
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        let what = format!("line {}", l + 1);
-        let t: Vec<&str> = line.split_whitespace().collect();
+    for (what, t) in data_lines(text) {
         if t.len() < 4 {
+            let line = t.join(" ");
             return Err(invalid(path, format!("{what}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[], got {line:?}")));
         }
         let model = MODELS

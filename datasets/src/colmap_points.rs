@@ -6,6 +6,7 @@ use std::path::Path;
 
 use sos_core::plugin::dataset::DatasetError;
 
+use crate::colmap::data_lines;
 use crate::text::{invalid, number, read_bytes, read_text, Reader};
 
 /// One triangulated point.
@@ -71,13 +72,7 @@ pub fn parse_points_bin(path: &Path, bytes: &[u8]) -> Result<Vec<SparsePoint>, D
 /// Parses `points3D.txt`: `POINT3D_ID X Y Z R G B ERROR` then `IMAGE_ID POINT2D_IDX` pairs.
 pub fn parse_points_txt(path: &Path, text: &str) -> Result<Vec<SparsePoint>, DatasetError> {
     let mut points = Vec::new();
-    for (l, line) in text.lines().enumerate() {
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        let what = format!("line {}", l + 1);
-        let t: Vec<&str> = line.split_whitespace().collect();
+    for (what, t) in data_lines(text) {
         if t.len() < 8 || !(t.len() - 8).is_multiple_of(2) {
             return Err(invalid(
                 path,

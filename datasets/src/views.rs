@@ -10,6 +10,7 @@ use sos_core::image::{GrayImage, RgbImage};
 use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{solve3, Scene, SceneExtent, View};
 
+use crate::forward_facing::looks_one_way;
 use crate::image_files::load_mask;
 use crate::pose::{self, Pose};
 use crate::text::invalid;
@@ -172,9 +173,19 @@ pub fn camera_focus(cams: &[&Camera]) -> (Vec3, f32) {
 /// Why layouts without stored bounds get the unbounded extent of [`extent_of`].
 pub const NO_AABB: &str = "no `aabb`: unbounded around the point the training cameras look at";
 
-/// The derived-setting line of an adapter that chose the extent itself.
+/// The derived-setting line of an adapter that chose the extent itself. An unbounded extent
+/// around cameras that look one way says it may be far too small: their axes meet, if at all,
+/// near the cameras, and without depth bounds nothing says where the content lies.
 pub fn extent_setting(scene: &Scene, reason: &str) -> DerivedSetting {
-    DerivedSetting::new("scene.extent", scene.extent, reason)
+    let cams: Vec<&Camera> = scene.train.iter().map(|&i| &scene.views[i].camera).collect();
+    let caution = match scene.extent {
+        SceneExtent::Unbounded { .. } if looks_one_way(&cams) => {
+            "; the cameras look one way and the layout gives no depth bounds, so this sphere may hold \
+             little of the content: give `aabb` (or use a layout with depth bounds: LLFF, COLMAP with points3D)"
+        }
+        _ => "",
+    };
+    DerivedSetting::new("scene.extent", scene.extent, format!("{reason}{caution}"))
 }
 
 /// The derived settings of an adapter whose extent, where the config gives no `aabb`, is the

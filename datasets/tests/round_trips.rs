@@ -371,6 +371,7 @@ fn colmap_forward_facing_is_chosen_from_the_cameras_and_bounded_by_the_points() 
         let notes = sos_core::plugin::DatasetConfig::derived(&cfg, Path::new(""), &loaded);
         let note = notes.iter().find(|d| d.key == "scene.forward_facing").expect("a forward_facing note");
         assert_eq!(note.value, forward.to_string(), "{rig:?}");
+        assert!(notes.iter().all(|d| !d.reason.contains("may hold little")), "{notes:?}");
         if forward {
             // Scaled so the nearest point is at 1 / 0.75, the extent's near 10 % closer.
             let SceneExtent::ForwardFacing { near, .. } = loaded.extent else { unreachable!() };
@@ -382,6 +383,8 @@ fn colmap_forward_facing_is_chosen_from_the_cameras_and_bounded_by_the_points() 
             assert!(matches!(bare.extent, SceneExtent::Unbounded { .. }), "{:?}", bare.extent);
             let notes = sos_core::plugin::DatasetConfig::derived(&cfg, Path::new(""), &bare);
             assert!(notes.iter().any(|d| d.reason.contains("no points3D")), "{notes:?}");
+            let extent_note = notes.iter().find(|d| d.key == "scene.extent").expect("an extent note");
+            assert!(extent_note.reason.contains("may hold little"), "{extent_note:?}");
             let forced = ColmapConfig { forward_facing: Some(true), ..cfg.clone() };
             let err = load_colmap(&forced, &dir).unwrap_err().to_string();
             assert!(err.contains("points3D.bin") && err.contains("forward_facing"), "{err}");
