@@ -23,13 +23,13 @@ use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use sos_core::camera::{Camera, Vec3};
+use sos_core::camera::Vec3;
 use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, SceneExtent, View};
 
 use crate::adapter::{hold_out_views, orbit_scene, register_dataset, require_folder};
 use crate::forward_facing::{
-    check_bd_factor, forward_facing_scene, forward_facing_setting, looks_one_way, Processing, FORWARD_PATH_VIEWS,
+    self, check_bd_factor, forward_facing_scene, forward_facing_setting, Processing, FORWARD_PATH_VIEWS,
 };
 use crate::image_files::{check_images_for, find_with_stem, list_images, stem};
 use crate::pose::{self, Pose};
@@ -314,13 +314,10 @@ fn load_original(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetEr
     let views: Vec<View> = loaded.into_iter().map(|l| l.0).collect();
     let (train, test) = hold_out_views(root, views.len(), cfg.hold_out_every)?;
     let name = scene_name(root, "blendedmvs");
-    if cfg.aabb.is_none() && cfg.forward_facing != Some(false) {
-        let cams: Vec<&Camera> = train.iter().map(|&i| &views[i].camera).collect();
-        if cfg.forward_facing == Some(true) || looks_one_way(&cams) {
-            let how =
-                Processing { bd_factor: cfg.bd_factor, recenter: cfg.recenter, render_path_views: FORWARD_PATH_VIEWS };
-            return Ok(forward_facing_scene(name, views, train, test, [min_depth, max_depth], how));
-        }
+    if forward_facing::wanted(cfg.aabb.is_some(), cfg.forward_facing, &views, &train) {
+        let how =
+            Processing { bd_factor: cfg.bd_factor, recenter: cfg.recenter, render_path_views: FORWARD_PATH_VIEWS };
+        return Ok(forward_facing_scene(name, views, train, test, [min_depth, max_depth], how));
     }
     let extent = extent_of(&views, &train, cfg.aabb);
     let near = cfg.near.unwrap_or((0.9 * min_depth) as f32);

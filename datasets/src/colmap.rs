@@ -35,7 +35,7 @@ use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use sos_core::camera::{Camera, Vec3};
+use sos_core::camera::Vec3;
 use sos_core::derived::DerivedSetting;
 use sos_core::plugin::dataset::DatasetError;
 use sos_core::scene::{Scene, SceneExtent, View};
@@ -43,8 +43,7 @@ use sos_core::scene::{Scene, SceneExtent, View};
 use crate::adapter::{hold_out_views, orbit_scene, register_dataset, require_folder};
 use crate::colmap_points::{read_points, SparsePoint};
 use crate::forward_facing::{
-    check_bd_factor, depth_bounds, forward_facing_scene, forward_facing_setting, looks_one_way, Processing,
-    FORWARD_PATH_VIEWS,
+    self, check_bd_factor, depth_bounds, forward_facing_scene, forward_facing_setting, Processing, FORWARD_PATH_VIEWS,
 };
 use crate::image_files::find_with_stem;
 use crate::pose::{self, Pose};
@@ -510,29 +509,26 @@ pub fn load_colmap(cfg: &ColmapConfig, root: &Path) -> Result<Scene, DatasetErro
         .collect::<Result<_, DatasetError>>()?;
     let (train, test) = hold_out_views(root, views.len(), cfg.hold_out_every)?;
     let name = scene_name(root, "colmap");
-    if cfg.aabb.is_none() && cfg.forward_facing != Some(false) {
-        let cams: Vec<&Camera> = train.iter().map(|&i| &views[i].camera).collect();
-        if cfg.forward_facing == Some(true) || looks_one_way(&cams) {
-            let ids: Vec<i64> = images.iter().map(|im| im.id).collect();
-            let points = read_points(&model_dir)?;
-            match points.as_deref().and_then(|p| content_bounds(&views, &ids, p)) {
-                Some(bounds) => {
-                    let how = Processing {
-                        bd_factor: cfg.bd_factor,
-                        recenter: cfg.recenter,
-                        render_path_views: FORWARD_PATH_VIEWS,
-                    };
-                    return Ok(forward_facing_scene(name, views, train, test, bounds, how));
-                }
-                None if cfg.forward_facing == Some(true) => {
-                    return Err(invalid(
-                        &model_dir.join("points3D.bin"),
-                        "config key `forward_facing = true` needs the content's depth bounds: points3D.bin or \
-                         points3D.txt with points in front of the cameras; add the model's points or drop the key",
-                    ))
-                }
-                None => {}
+    if forward_facing::wanted(cfg.aabb.is_some(), cfg.forward_facing, &views, &train) {
+        let ids: Vec<i64> = images.iter().map(|im| im.id).collect();
+        let points = read_points(&model_dir)?;
+        match points.as_deref().and_then(|p| content_bounds(&views, &ids, p)) {
+            Some(bounds) => {
+                let how = Processing {
+                    bd_factor: cfg.bd_factor,
+                    recenter: cfg.recenter,
+                    render_path_views: FORWARD_PATH_VIEWS,
+                };
+                return Ok(forward_facing_scene(name, views, train, test, bounds, how));
             }
+            None if cfg.forward_facing == Some(true) => {
+                return Err(invalid(
+                    &model_dir.join("points3D.bin"),
+                    "config key `forward_facing = true` needs the content's depth bounds: points3D.bin or \
+                     points3D.txt with points in front of the cameras; add the model's points or drop the key",
+                ))
+            }
+            None => {}
         }
     }
     let extent = extent_of(&views, &train, cfg.aabb);
@@ -543,10 +539,17 @@ pub fn load_colmap(cfg: &ColmapConfig, root: &Path) -> Result<Scene, DatasetErro
 /// observes (by its track; every point when no track names the view), each view's bounds
 /// trimmed as [`depth_bounds`] does. `None` when no view sees a point.
 fn content_bounds(views: &[View], ids: &[i64], points: &[SparsePoint]) -> Option<[f64; 2]> {
+    // Each image's points, from the tracks inverted once.
+    let mut observed: HashMap<i64, Vec<[f64; 3]>> = HashMap::new();
+    for p in points {
+        for &image in &p.images {
+            observed.entry(image).or_default().push(p.xyz);
+        }
+    }
+    let every: Vec<[f64; 3]> = points.iter().map(|p| p.xyz).collect();
     let mut bounds: Option<[f64; 2]> = None;
-    for (view, &id) in views.iter().zip(ids) {
-        let tracked: Vec<[f64; 3]> = points.iter().filter(|p| p.images.contains(&id)).map(|p| p.xyz).collect();
-        let seen = if tracked.is_empty() { points.iter().map(|p| p.xyz).collect() } else { tracked };
+    for (view, id) in views.iter().zip(ids) {
+        let seen = observed.get(id).filter(|s| !s.is_empty()).unwrap_or(&every).iter().copied();
         if let Some([lo, hi]) = depth_bounds(&view.camera, seen) {
             bounds = Some(match bounds {
                 Some([a, b]) => [a.min(lo), b.max(hi)],

@@ -51,6 +51,17 @@ pub fn forward_facing_setting(scene: &Scene, without_bounds: &str) -> DerivedSet
     DerivedSetting::new("scene.forward_facing", forward, reason)
 }
 
+/// Whether an adapter reads a capture as forward-facing: never with a box (`aabb`) given or
+/// `forward_facing = false`; with `forward_facing = true` always; unset, when the training
+/// cameras look one way.
+pub fn wanted(aabb_given: bool, forward_facing: Option<bool>, views: &[View], train: &[usize]) -> bool {
+    match (aabb_given, forward_facing) {
+        (true, _) | (false, Some(false)) => false,
+        (false, Some(true)) => true,
+        (false, None) => looks_one_way(&train.iter().map(|&i| &views[i].camera).collect::<Vec<_>>()),
+    }
+}
+
 /// Share of a view's points dropped at each end of its depth range, as `imgs2poses` does
 /// (its 0.1 and 99.9 percentiles), so a stray point does not set the bound.
 const OUTLIER_PERCENT: f64 = 0.1;

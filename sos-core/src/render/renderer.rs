@@ -742,6 +742,11 @@ mod tests {
     use crate::camera::{Camera, Vec3};
     use crate::render::sampler::MarchOptions;
 
+    /// Options with proposal sampling and no memory limit.
+    fn unlimited(march: MarchOptions, early_stop: f32, min_weight: f32) -> RenderOptions {
+        RenderOptions { proposal: true, march, early_stop, min_weight, memory: MemoryBudget::unlimited() }
+    }
+
     /// A dense ball of radius 0.5 at the origin, coloured by position; counts density calls.
     /// `with_state`: its density pass keeps the position as state, and the colour pass reads
     /// position from there.
@@ -983,22 +988,7 @@ mod tests {
         let (extent, contraction, rays) = setup();
         let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
         let march = MarchOptions { steps: 64, stratified: false };
-        for options in [
-            RenderOptions {
-                proposal: true,
-                march,
-                early_stop: 1e-4,
-                min_weight: 1e-3,
-                memory: MemoryBudget::unlimited(),
-            },
-            RenderOptions {
-                proposal: true,
-                march,
-                early_stop: 0.0,
-                min_weight: 0.0,
-                memory: MemoryBudget::unlimited(),
-            },
-        ] {
+        for options in [unlimited(march, 1e-4, 1e-3), unlimited(march, 0.0, 0.0)] {
             let rng = || rand_chacha::ChaCha8Rng::seed_from_u64(0);
             let plain = render(&field, ctx, &rays, options, false, &mut rng());
             let kept = render_with_seg_input(
@@ -1082,26 +1072,8 @@ mod tests {
     fn early_termination_skips_density_work_and_keeps_colours() {
         let field = Ball::new(None, false);
         let march = MarchOptions { steps: 256, stratified: false };
-        let (full, _) = colours(
-            &field,
-            RenderOptions {
-                proposal: true,
-                march,
-                early_stop: 0.0,
-                min_weight: 0.0,
-                memory: MemoryBudget::unlimited(),
-            },
-        );
-        let (pruned, evaluated) = colours(
-            &field,
-            RenderOptions {
-                proposal: true,
-                march,
-                early_stop: 1e-4,
-                min_weight: 1e-4,
-                memory: MemoryBudget::unlimited(),
-            },
-        );
+        let (full, _) = colours(&field, unlimited(march, 0.0, 0.0));
+        let (pruned, evaluated) = colours(&field, unlimited(march, 1e-4, 1e-4));
         let hits = full.iter().filter(|c| c.acc > 0.5).count();
         assert!(hits > 20, "the ball covers part of the image ({hits} rays)");
         for (a, b) in full.iter().zip(&pruned) {
@@ -1111,16 +1083,7 @@ mod tests {
             assert!((a.acc - b.acc).abs() < 2e-3);
         }
         // Rays through the ball stop inside it, skipping at least the back half of the box.
-        let (_, all) = colours(
-            &field,
-            RenderOptions {
-                proposal: true,
-                march,
-                early_stop: 0.0,
-                min_weight: 1e-9,
-                memory: MemoryBudget::unlimited(),
-            },
-        );
+        let (_, all) = colours(&field, unlimited(march, 0.0, 1e-9));
         assert!(evaluated + 100 * hits < all, "evaluated {evaluated} of {all} densities ({hits} rays hit)");
     }
 
@@ -1132,13 +1095,7 @@ mod tests {
     fn early_termination_without_a_density_pass_where_the_field_says_it_does_not_pay() {
         let field = Ball { termination_pass: false, ..Ball::new(None, false) };
         let march = MarchOptions { steps: 256, stratified: false };
-        let options = |early_stop, min_weight| RenderOptions {
-            proposal: true,
-            march,
-            early_stop,
-            min_weight,
-            memory: MemoryBudget::unlimited(),
-        };
+        let options = |early_stop, min_weight| unlimited(march, early_stop, min_weight);
         let frozen = |field: &Ball| {
             let (extent, contraction, rays) = setup();
             let ctx = RenderContext { extent: &extent, contraction: &contraction, occupancy: None, near: 0.0 };
