@@ -422,3 +422,51 @@ fn a_method_of_another_build_runs_its_own_train_beside_this_builds_rows() {
     assert!(failed["error"].as_str().unwrap().contains("exited with code 7"), "{failed:#}");
     std::fs::remove_dir_all(dir).ok();
 }
+
+#[test]
+fn another_builds_stage_two_starts_from_this_builds_stage_one_and_a_rerun_from_its_own() {
+    let dir = temp_dir("stage1-of");
+    // "Another build" is this very binary again: its `sos segment` on the `default` run's
+    // stage-1 checkpoint must give that run's masks (stage 2 is deterministic per seed).
+    let program = env!("CARGO_BIN_EXE_sos");
+    let methods = format!(
+        "[methods.after]\nprogram = \"{program}\"\nconfig = \"base.toml\"\nscenes = [\"tiny\"]\nstage1_of = \"default\"\n\
+         [profiles.p]\nscenes = [\"tiny\"]\nmethods = [\"after\", \"default\"]\nseeds = [0]\n"
+    );
+    write_bench(&dir, &methods);
+    let list = sos(&["bench", "bench.toml", "--profile", "p", "--list"], &dir);
+    let listed = text(&list.stdout);
+    assert!(listed.contains("2 runs to run here, 1 of them with a stage 1 of their own"), "{listed}");
+    let out = sos(&["bench", "bench.toml", "--profile", "p"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let (runs, work) = (dir.join("results/p/runs"), dir.join("results/p/work"));
+    let ours = json(&runs.join("tiny__default__s0.json"));
+    let after = json(&runs.join("tiny__after__s0.json"));
+    assert_eq!(after["status"], "done", "{after:#}");
+    for metric in ["miou", "nv_ari", "iou_fg"] {
+        let (a, b) = (&ours["outcome"]["metrics"][metric], &after["outcome"]["metrics"][metric]);
+        assert!(a.as_f64().is_some() && a == b, "{metric}: {a} against {b}");
+    }
+    assert_eq!(after["outcome"]["timing"]["stage1"], ours["outcome"]["timing"]["stage1"]);
+    let notes = after["outcome"]["notes"].to_string();
+    assert!(notes.contains("stage-1 checkpoint of `tiny__default__s0`"), "{notes}");
+    assert!(!work.join("tiny__after__s0.stage1.bin").exists(), "the handed-over copy is removed");
+    // `--rerun default` runs it again from its previous stage 1, to the same result; the rest
+    // stays cached.
+    let out = sos(&["bench", "bench.toml", "--profile", "p", "--rerun", "default"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert!(text(&out.stdout).contains("1 ran, 1 cached"), "{}", text(&out.stdout));
+    let again = json(&runs.join("tiny__default__s0.json"));
+    assert_eq!(again["outcome"]["metrics"], ours["outcome"]["metrics"]);
+    assert_eq!(again["outcome"]["timing"]["stage1"], ours["outcome"]["timing"]["stage1"]);
+    let notes = again["outcome"]["notes"].to_string();
+    assert!(notes.contains("stage 1 shared with `tiny__default__s0.previous`"), "{notes}");
+    assert!(
+        work.join("tiny__default__s0/checkpoint.bin").is_file() && !work.join("tiny__default__s0.previous").exists()
+    );
+    // A method the file does not define is refused.
+    let out = sos(&["bench", "bench.toml", "--profile", "p", "--rerun", "nope"], &dir);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(text(&out.stderr).contains("`--rerun nope`"), "{}", text(&out.stderr));
+    std::fs::remove_dir_all(dir).ok();
+}

@@ -168,6 +168,22 @@ pub fn load(path: &Path) -> Result<Checkpoint, RunError> {
     Ok(Checkpoint { meta, bytes, sections })
 }
 
+/// Writes the checkpoint at `from` to `to` in the format without a checksum, the one builds
+/// from before checksums read (every build reads it), after checking `from`'s checksum: for
+/// handing this build's stage 1 to an older build (`sos bench`'s `stage1_of`).
+pub fn save_unchecked_copy(from: &Path, to: &Path) -> Result<(), RunError> {
+    let checked = load(from)?;
+    let err = |e: std::io::Error| RunError::Checkpoint { path: to.to_path_buf(), message: e.to_string() };
+    let mut bytes = checked.bytes;
+    if bytes[..8] == MAGIC[..] {
+        bytes.truncate(bytes.len() - CHECKSUM_BYTES);
+        bytes[..8].copy_from_slice(MAGIC_UNCHECKED);
+    }
+    let tmp = to.with_extension(TEMPORARY_EXTENSION);
+    std::fs::write(&tmp, &bytes).map_err(err)?;
+    std::fs::rename(&tmp, to).map_err(err)
+}
+
 fn read_u64(bytes: &[u8], pos: usize) -> Option<u64> {
     Some(u64::from_le_bytes(bytes.get(pos..pos + 8)?.try_into().ok()?))
 }
@@ -244,6 +260,18 @@ mod tests {
         bytes[..8].copy_from_slice(MAGIC_UNCHECKED);
         std::fs::write(&path, &bytes).unwrap();
         assert_eq!(load(&path).unwrap().section("field"), Some(&[1u8][..]));
+        // The unchecked copy of a checked checkpoint is exactly that file, and copies of it stay so.
+        let checked = dir.join("checked.bin");
+        save(&checked, &meta, &[("field", &[1])]).unwrap();
+        let copy = dir.join("copy.bin");
+        save_unchecked_copy(&checked, &copy).unwrap();
+        assert_eq!(std::fs::read(&copy).unwrap(), bytes);
+        save_unchecked_copy(&path, &copy).unwrap();
+        assert_eq!(std::fs::read(&copy).unwrap(), bytes);
+        let mut damaged = std::fs::read(&checked).unwrap();
+        damaged[20] ^= 1;
+        std::fs::write(&checked, &damaged).unwrap();
+        assert!(save_unchecked_copy(&checked, &copy).unwrap_err().to_string().contains("checksum"));
         std::fs::remove_dir_all(dir).ok();
     }
 }

@@ -7,7 +7,7 @@ use clap::{Args, Subcommand};
 
 pub use super::exec::ExecArgs;
 use super::matrix::{plan, shard, PlannedRun};
-use super::runner::{run_all, BenchMeta};
+use super::runner::{run_all, BenchMeta, Reuse};
 use super::spec::BenchFile;
 use super::{merge, record, report};
 
@@ -41,6 +41,11 @@ pub struct BenchArgs {
     /// no result).
     #[arg(long)]
     own_stage1: bool,
+    /// Run this method's runs again even where a finished result with the same config exists
+    /// (repeatable), e.g. to time them beside a new row in one invocation; each starts from its
+    /// previous result's stage 1 when that result kept its checkpoint (not with `--own-stage1`).
+    #[arg(long, value_name = "METHOD")]
+    rerun: Vec<String>,
 }
 
 #[derive(Debug, Subcommand)]
@@ -139,12 +144,7 @@ fn run_file(file_path: &std::path::Path, args: &BenchArgs, progress: bool) -> an
                 r.skip.as_ref().map_or(String::new(), |s| format!("  skipped: {s}"))
             )?;
         }
-        let (to_run, stage1s) = if args.own_stage1 {
-            let n = stage1_count(&runs).0;
-            (n, n)
-        } else {
-            stage1_count(&runs)
-        };
+        let (to_run, stage1s) = stage1_count(&runs, !args.own_stage1);
         say!(
             "{to_run} runs to run here, {stage1s} of them with a stage 1 of their own (the others share one) \
              in a fresh result folder"
@@ -160,7 +160,13 @@ fn run_file(file_path: &std::path::Path, args: &BenchArgs, progress: bool) -> an
         target: file.bench.target,
     };
     let commit = record::commit_of(&file.dir());
-    let tally = run_all(&runs, &out, &meta, curve_points, &commit, progress, !args.own_stage1)?;
+    for method in &args.rerun {
+        if !file.methods.contains_key(method) {
+            bail!("`--rerun {method}`: no method `{method}` in {}", file_path.display());
+        }
+    }
+    let reuse = Reuse { share_stage1: !args.own_stage1, rerun: args.rerun.clone() };
+    let tally = run_all(&runs, &out, &meta, curve_points, &commit, progress, &reuse)?;
     say!(
         "{} ran, {} cached, {} skipped, {} failed; report in {}",
         tally.ran,
@@ -202,8 +208,9 @@ impl RunsFailed {
 /// Runs that would run (not skipped, no other run with the same config) and how many of them
 /// train a stage 1 of their own when run in order into a fresh result folder: the rest leave
 /// the field frozen and share the stage 1 of an earlier run with the same stage-1 settings
-/// that left it frozen too (as the runner decides, given that every run finishes).
-fn stage1_count(runs: &[PlannedRun]) -> (usize, usize) {
+/// that left it frozen too (as the runner decides, given that every run finishes), unless
+/// `share` is off. Another build's run from a run's stage 1 (`stage1_of`) never has its own.
+fn stage1_count(runs: &[PlannedRun], share: bool) -> (usize, usize) {
     let mut configs = std::collections::HashSet::new();
     let mut sources = std::collections::HashSet::new();
     let (mut to_run, mut stage1s) = (0, 0);
@@ -212,7 +219,10 @@ fn stage1_count(runs: &[PlannedRun]) -> (usize, usize) {
             continue;
         }
         to_run += 1;
-        let frozen = super::runner::leaves_field_frozen(&toml::to_string(&r.config).unwrap_or_default());
+        if r.stage1_of.is_some() {
+            continue;
+        }
+        let frozen = share && super::runner::leaves_field_frozen(&toml::to_string(&r.config).unwrap_or_default());
         if !(frozen && sources.contains(r.stage1_hash.as_str())) {
             stage1s += 1;
             if frozen {

@@ -88,6 +88,9 @@ pub struct PlannedRun {
     pub skip: Option<String>,
     /// Another build that runs it with its own `sos train` (its config then in that build's keys).
     pub program: Option<PathBuf>,
+    /// The id of this build's run whose stage-1 checkpoint `program` starts from (with its
+    /// `sos segment`; the method's `stage1_of`): planned before it, in the same shard.
+    pub stage1_of: Option<String>,
     /// Size of the view the run times with its mask (none: the scene's own).
     pub view_size: Option<[u32; 2]>,
 }
@@ -203,7 +206,51 @@ pub fn plan(file: &BenchFile, profile: Option<&str>, out: &Path) -> anyhow::Resu
             bail!("{fpath}: two runs would share the id `{}` (two sweep points with one label?)", w[0].key.id);
         }
     }
+    link_stage1_sources(file, &mut runs)?;
     Ok(Matrix { profile: profile_name.unwrap_or_else(|| "all".into()), curve_points, runs })
+}
+
+/// Ties each run of a method with `stage1_of` to the run whose stage-1 checkpoint it starts
+/// from (same scene and seed): its hash covers that run's (a changed stage 1 reruns it), it
+/// lands in that run's shard, and it is moved after every other run, so the source is done
+/// first.
+fn link_stage1_sources(file: &BenchFile, runs: &mut Vec<PlannedRun>) -> anyhow::Result<()> {
+    let fpath = file.path.display();
+    let mut dependent = Vec::new();
+    for i in 0..runs.len() {
+        let key = &runs[i].key;
+        let Some(method) = &file.methods[&key.method].stage1_of else { continue };
+        let source = runs
+            .iter()
+            .find(|r| {
+                r.key.scene == key.scene && r.key.seed == key.seed && &r.key.method == method && r.key.sweep.is_none()
+            })
+            .ok_or_else(|| {
+                anyhow!(
+                    "{fpath}: method `{}` starts from the stage 1 of method `{method}` on scene `{}`, which this \
+                     profile does not run: add `{method}` to the profile's methods",
+                    key.method,
+                    key.scene
+                )
+            })?;
+        let (id, hash, shard_key, skip) =
+            (source.key.id.clone(), source.hash.clone(), source.shard_key.clone(), source.skip.clone());
+        let run = &mut runs[i];
+        run.hash = hash_text(&format!("{}\nstage 1 of {id}: {hash}", run.hash));
+        run.stage1_hash = run.hash.clone();
+        run.shard_key = shard_key;
+        if run.skip.is_none() {
+            run.skip = skip.map(|s| format!("the run it starts from, `{id}`, is skipped: {s}"));
+        }
+        run.stage1_of = Some(id);
+        dependent.push(i);
+    }
+    // A stable partition: the order within each part stays the id order.
+    let (mut later, mut first): (Vec<_>, Vec<_>) =
+        std::mem::take(runs).into_iter().enumerate().partition(|(i, _)| dependent.contains(i));
+    first.append(&mut later);
+    *runs = first.into_iter().map(|(_, r)| r).collect();
+    Ok(())
 }
 
 /// One overlay of a method or sweep point.
@@ -296,6 +343,7 @@ impl RunContext<'_> {
                 shard_key,
                 skip,
                 program: None,
+                stage1_of: None,
                 view_size: self.view_size,
             });
         }
@@ -374,6 +422,7 @@ impl RunContext<'_> {
             shard_key,
             skip,
             program: Some(program),
+            stage1_of: None,
             view_size: None,
         })
     }
@@ -837,6 +886,41 @@ mod tests {
         let rerun = again.runs.iter().find(|r| r.key.method == "old").unwrap();
         assert_ne!(rerun.hash, run.hash);
         assert_eq!(rerun.shard_key, run.shard_key);
+    }
+
+    #[test]
+    fn another_builds_stage2_follows_the_run_whose_stage1_it_starts_from() {
+        let body = format!(
+            "{HEAD}[bench]\nseeds = [0, 1]\n[methods.aa-old]\nprogram = \"old-sos\"\nconfig = \"old.toml\"\nstage1_of = \"short\"\n\
+             [profiles.p]\nmethods = [\"aa-old\", \"default\", \"short\"]\n[profiles.q]\nmethods = [\"aa-old\", \"default\"]\n"
+        );
+        let (dir, file) = bench(&body);
+        let file = file.unwrap();
+        std::fs::write(dir.join("old-sos"), "binary").unwrap();
+        std::fs::write(dir.join("old.toml"), "[legacy]\nkey = 1\n").unwrap();
+        let m = plan(&file, Some("p"), &dir).unwrap();
+        // Each one after its source, though its id sorts first; the rest in id order.
+        let ids: Vec<&str> = m.runs.iter().map(|r| r.key.id.as_str()).collect();
+        assert_eq!(&ids[8..], ["a__aa-old__s0", "a__aa-old__s1", "b__aa-old__s0", "b__aa-old__s1"]);
+        assert!(ids[..8].windows(2).all(|w| w[0] < w[1]), "{ids:?}");
+        for run in &m.runs[8..] {
+            let source = m.runs.iter().find(|r| Some(&r.key.id) == run.stage1_of.as_ref()).unwrap();
+            assert_eq!(
+                (source.key.method.as_str(), &source.key.scene, source.key.seed),
+                ("short", &run.key.scene, run.key.seed)
+            );
+            assert_eq!(run.shard_key, source.shard_key, "one shard holds both");
+            assert_eq!(run.skip, None);
+        }
+        // A changed stage 1 of the source reruns it.
+        let before = m.runs[8].hash.clone();
+        std::fs::write(dir.join("bench.toml"), body.replace("\"train.steps\" = 10", "\"train.steps\" = 11")).unwrap();
+        let changed = plan(&BenchFile::load(&dir.join("bench.toml")).unwrap(), Some("p"), &dir).unwrap();
+        assert_ne!(changed.runs[8].hash, before);
+        // A profile without the source method is an error that says what to add.
+        let e = plan(&file, Some("q"), &dir).map(|_| ()).unwrap_err().to_string();
+        assert!(e.contains("`aa-old`") && e.contains("add `short`"), "{e}");
+        std::fs::remove_dir_all(dir).ok();
     }
 
     #[test]

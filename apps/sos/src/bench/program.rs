@@ -2,6 +2,10 @@
 //! its own config, timed and read back from the `metrics.json` it writes, so that one report
 //! sets builds side by side (e.g. a release against the commit an optimisation started from).
 //!
+//! With `stage1_of` it instead runs its `sos segment --checkpoint` on the stage-1 checkpoint of
+//! this build's run of that method, handed over in the format without a checksum that every
+//! build reads: both builds' stage 2 on one field.
+//!
 //! Such a run has no learning curves and no timed view: an older build cannot sample them. Its
 //! stage times are the ones it wrote; its peak memory and CPU time come from the kernel's
 //! accounting of the child process.
@@ -13,8 +17,11 @@ use std::time::Instant;
 use anyhow::{bail, Context};
 use serde_json::Value as Json;
 
+use sos_core::train::checkpoint::save_unchecked_copy;
+
 use super::matrix::{hash_text, PlannedRun};
-use super::record::{cpu_ticks, stolen_between, Metrics, Outcome, Timing};
+use super::record::{cpu_ticks, stolen_between, Metrics, Outcome, RunRecord, Timing};
+use super::runner::CHECKPOINT;
 
 /// What the kernel accounted for a finished child process.
 struct ChildUsage {
@@ -26,9 +33,34 @@ struct ChildUsage {
     cpu_seconds: f64,
 }
 
-/// Runs `run` with `program train <config>` in `work/<id>` and returns what it measured.
-pub fn execute(run: &PlannedRun, program: &Path, work: &Path, log_path: &Path) -> anyhow::Result<Outcome> {
+/// Runs `run` with `program train <config>` in `work/<id>` (or, with `stage1_of`,
+/// `program segment <config> --checkpoint` on `source`'s checkpoint) and returns what it
+/// measured.
+pub fn execute(
+    run: &PlannedRun,
+    program: &Path,
+    work: &Path,
+    log_path: &Path,
+    source: Option<&RunRecord>,
+) -> anyhow::Result<Outcome> {
     let run_dir = work.join(&run.key.id);
+    let handed_over = match &run.stage1_of {
+        Some(id) => {
+            let source = source.with_context(|| {
+                format!("it starts from the stage 1 of `{id}`, which did not finish in this run of the matrix")
+            })?;
+            let checkpoint = work.join(&source.key.id).join(CHECKPOINT);
+            let copy = work.join(format!("{}.stage1.bin", run.key.id));
+            save_unchecked_copy(&checkpoint, &copy).with_context(|| {
+                format!(
+                    "handing the stage 1 of `{id}` over (its folder {} must hold its checkpoint)",
+                    checkpoint.display()
+                )
+            })?;
+            Some((source, copy))
+        }
+        None => None,
+    };
     // The config stays beside its original so that its relative paths (data, weights) resolve.
     let config_path = run.config_dir.join(format!(".sos-bench-{}.toml", &hash_text(&run.key.id)[..12]));
     std::fs::write(&config_path, super::runner::run_config_text(run, work)?)
@@ -36,9 +68,12 @@ pub fn execute(run: &PlannedRun, program: &Path, work: &Path, log_path: &Path) -
     let log = std::fs::File::create(log_path).with_context(|| format!("creating {}", log_path.display()))?;
     let ticks = cpu_ticks();
     let started = Instant::now();
-    let child = Command::new(program)
-        .arg("train")
-        .arg(&config_path)
+    let mut command = Command::new(program);
+    match &handed_over {
+        Some((_, copy)) => command.arg("segment").arg(&config_path).arg("--checkpoint").arg(copy),
+        None => command.arg("train").arg(&config_path),
+    };
+    let child = command
         .stdin(Stdio::null())
         .stdout(log.try_clone()?)
         .stderr(log)
@@ -47,6 +82,9 @@ pub fn execute(run: &PlannedRun, program: &Path, work: &Path, log_path: &Path) -
     let usage = child.and_then(wait_with_usage);
     let wall = started.elapsed().as_secs_f64();
     let _ = std::fs::remove_file(&config_path);
+    if let Some((_, copy)) = &handed_over {
+        let _ = std::fs::remove_file(copy);
+    }
     let usage = usage?;
     if usage.code != Some(0) {
         let how = usage.code.map_or_else(|| "was killed by a signal".to_string(), |c| format!("exited with code {c}"));
@@ -61,11 +99,31 @@ pub fn execute(run: &PlannedRun, program: &Path, work: &Path, log_path: &Path) -
     outcome.peak_rss_mib = Some(usage.peak_rss_mib);
     outcome.cpu_seconds = Some(usage.cpu_seconds);
     outcome.cpu_stolen = ticks.zip(cpu_ticks()).and_then(|(a, b)| stolen_between(a, b));
-    outcome.notes.push(format!(
-        "run by another build, {} (its own `sos train` on its own config): no learning curves or timed view",
-        program.display()
-    ));
+    match handed_over {
+        Some((source, _)) => {
+            take_stage1(&mut outcome, source);
+            outcome.notes.push(format!(
+                "stage 2 by another build, {} (its own `sos segment` on its own config, from the stage-1 \
+                 checkpoint of `{}`, whose stage-1 time it counts): no learning curves or timed view",
+                program.display(),
+                source.key.id
+            ));
+        }
+        None => outcome.notes.push(format!(
+            "run by another build, {} (its own `sos train` on its own config): no learning curves or timed view",
+            program.display()
+        )),
+    }
     Ok(outcome)
+}
+
+/// Counts the stage 1 a run started from as its own (its time, in the total too, and its
+/// summary), as a run of this build that shares a stage 1 does.
+fn take_stage1(outcome: &mut Outcome, source: &RunRecord) {
+    let Some(o) = &source.outcome else { return };
+    outcome.timing.total += o.timing.stage1 - outcome.timing.stage1;
+    outcome.timing.stage1 = o.timing.stage1;
+    outcome.stage1 = o.stage1.clone();
 }
 
 /// Waits for `child` and reads its resource usage (`wait4`, which reaps it: the only call that

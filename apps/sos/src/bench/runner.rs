@@ -59,8 +59,22 @@ pub struct Tally {
     pub failed: Vec<String>,
 }
 
-/// Runs `runs` (a matrix or one shard of it) into `out`; with `share_stage1`, a run may start
-/// from an earlier finished run's stage 1 with the same stage-1 settings.
+/// What earlier work a run may stand on.
+#[derive(Debug, Default)]
+pub struct Reuse {
+    /// A run may start from an earlier finished run's stage 1 with the same stage-1 settings.
+    pub share_stage1: bool,
+    /// Methods whose finished results run again (`--rerun`), e.g. to time them beside a new
+    /// row in one invocation. With `share_stage1`, such a run starts from its previous result's
+    /// stage 1 when that result trained its own and kept its checkpoint.
+    pub rerun: Vec<String>,
+}
+
+/// Where a rerun's previous result is moved while the rerun starts from its stage 1.
+const PREVIOUS_SUFFIX: &str = ".previous";
+
+/// Runs `runs` (a matrix or one shard of it) into `out`, standing on earlier work as `reuse`
+/// allows.
 pub fn run_all(
     runs: &[PlannedRun],
     out: &Path,
@@ -68,8 +82,9 @@ pub fn run_all(
     curve_points: usize,
     commit: &str,
     progress: bool,
-    share_stage1: bool,
+    reuse: &Reuse,
 ) -> anyhow::Result<Tally> {
+    let share_stage1 = reuse.share_stage1;
     let runs_dir = out.join("runs");
     let work_dir = out.join(WORK_DIR);
     for d in [&runs_dir, &work_dir, &out.join("logs")] {
@@ -95,7 +110,8 @@ pub fn run_all(
         bar.set_message(run.key.id.clone());
         let path = runs_dir.join(format!("{}.json", run.key.id));
         let started = Instant::now();
-        let done = |r: &RunRecord| r.status == Status::Done && r.hash == run.hash;
+        let rerun = reuse.rerun.contains(&run.key.method);
+        let done = |r: &RunRecord| !rerun && r.status == Status::Done && r.hash == run.hash;
         let mut cached = false;
         // A finished result stands even where its data or weights are missing now.
         let (record, how) = if let Some(r) = existing.iter().chain(&records).find(|r| r.key.id == run.key.id && done(r))
@@ -122,7 +138,14 @@ pub fn run_all(
         } else {
             // Only this invocation's records: each is the latest of its id, and its work
             // folder holds that very run (an older record of a rerun id would not).
-            let source = records.iter().find(|r| share_stage1 && shares_stage1(r, run, &work_dir));
+            let previous = if rerun && share_stage1 { set_previous_aside(run, &existing, &work_dir)? } else { None };
+            let source = match &run.stage1_of {
+                // Another build's stage 2 starts from this very run, whatever `--own-stage1` says.
+                Some(id) => records.iter().rev().find(|r| &r.key.id == id && r.status == Status::Done),
+                None => previous
+                    .as_ref()
+                    .or_else(|| records.iter().find(|r| share_stage1 && shares_stage1(r, run, &work_dir))),
+            };
             let program = program_id(run);
             let (mut record, how) = match execute(run, out, curve_points, source) {
                 Ok(outcome) => {
@@ -137,6 +160,9 @@ pub fn run_all(
                     (RunRecord::new(run, Status::Failed, Some(message), None, commit), format!("FAILED: {first}"))
                 }
             };
+            if let Some(p) = &previous {
+                let _ = std::fs::remove_dir_all(work_dir.join(&p.key.id));
+            }
             record.wall_seconds = Some(started.elapsed().as_secs_f64());
             record.program = program;
             (record, how)
@@ -166,6 +192,32 @@ pub fn run_all(
         report::write(out, &records, meta).context("writing the report")?;
     }
     Ok(tally)
+}
+
+/// For a rerun: moves its previous result's folder aside (to `<id>.previous`) when that
+/// result can give it its stage 1, and returns that result's record under the moved folder's
+/// name. The rerun removes it when done.
+fn set_previous_aside(run: &PlannedRun, existing: &[RunRecord], work_dir: &Path) -> anyhow::Result<Option<RunRecord>> {
+    let Some(old) = existing.iter().find(|r| r.key.id == run.key.id) else { return Ok(None) };
+    let mut moved = old.clone();
+    moved.key.id = format!("{}{PREVIOUS_SUFFIX}", run.key.id);
+    let (from, to) = (work_dir.join(&run.key.id), work_dir.join(&moved.key.id));
+    // Already aside when a rerun was killed: the record is still that result's.
+    if !to.join(CHECKPOINT).is_file() {
+        if to.exists() {
+            std::fs::remove_dir_all(&to).with_context(|| format!("removing {}", to.display()))?;
+        }
+        if !from.join(CHECKPOINT).is_file() {
+            return Ok(None);
+        }
+        std::fs::rename(&from, &to).with_context(|| format!("moving {} aside", from.display()))?;
+    }
+    if shares_stage1(&moved, run, work_dir) {
+        Ok(Some(moved))
+    } else {
+        std::fs::remove_dir_all(&to).with_context(|| format!("removing {}", to.display()))?;
+        Ok(None)
+    }
 }
 
 /// Whether an earlier skip record says the same (its time aside), so it need not be rewritten.
@@ -217,7 +269,7 @@ fn shares_stage1(source: &RunRecord, run: &PlannedRun, work_dir: &Path) -> bool 
 }
 
 /// The final checkpoint of a run.
-const CHECKPOINT: &str = "checkpoint.bin";
+pub(super) const CHECKPOINT: &str = "checkpoint.bin";
 
 /// Whether a run config (TOML) runs stage 2 with the field frozen: stage 2 has steps and no
 /// photometric term (which trains the field jointly).
@@ -252,7 +304,7 @@ fn execute(
     }
     let log_path = out.join("logs").join(format!("{}.log", run.key.id));
     if let Some(program) = &run.program {
-        return super::program::execute(run, program, &absolute(&work), &log_path);
+        return super::program::execute(run, program, &absolute(&work), &log_path, stage1_from);
     }
     let config_path = work.join(format!("{}.toml", run.key.id));
     std::fs::write(&config_path, run_config_text(run, &absolute(&work))?)

@@ -29,6 +29,10 @@
 //! program = "../target/builds/b3a6cd8/sos"
 //! config = "older-colmap.toml"
 //! scene_keys = ["scene.path", "train.steps"]
+//! [methods.older-build-stage2]                 # its `sos segment` from the default run's stage 1
+//! program = "../target/builds/b3a6cd8/sos"
+//! config = "older-nerf.toml"
+//! stage1_of = "default"
 //!
 //! [[sweep]]
 //! name = "head-steps"
@@ -152,6 +156,11 @@ pub struct MethodSpec {
     /// both builds read alike. A generated scene is then written before the run.
     #[serde(default)]
     pub scene_keys: Vec<String>,
+    /// With `program`: the other build starts from the stage-1 checkpoint of this method's run
+    /// (same scene and seed, this build's, in the same invocation) with its own
+    /// `sos segment --checkpoint`, instead of training its own stage 1: both builds' stage 2
+    /// then run on one field, and an hour-long stage 1 is trained once.
+    pub stage1_of: Option<String>,
 }
 
 /// How a sweep combines the lists of its `vary` keys.
@@ -297,6 +306,22 @@ impl BenchFile {
             }
             if m.program.is_none() && !m.scene_keys.is_empty() {
                 bail!("{file}: method `{name}` sets `scene_keys`, which only a method run by another build (`program`) takes");
+            }
+            if let Some(source) = &m.stage1_of {
+                if m.program.is_none() {
+                    bail!("{file}: method `{name}` sets `stage1_of`, which only a method run by another build (`program`) takes");
+                }
+                match self.methods.get(source) {
+                    Some(s) if s.program.is_none() => {}
+                    Some(_) => bail!(
+                        "{file}: method `{name}`: `stage1_of = \"{source}\"` names a method run by another build; \
+                         name one of this build's, whose run writes the stage-1 checkpoint"
+                    ),
+                    None => bail!(
+                        "{file}: method `{name}`: `stage1_of` names method `{source}`, which is not defined; methods: {}",
+                        names(self.methods.keys())
+                    ),
+                }
             }
             match (&m.program, &m.config) {
                 (None, None) => {}
@@ -465,6 +490,14 @@ config = "a.toml"
         )
         .unwrap_err();
         assert!(e.contains("sweep `s`") && e.contains("another build"), "{e}");
+        let program = "program = \"o\"\nconfig = \"o.toml\"\n";
+        assert!(with(&format!("{program}stage1_of = \"default\"\n")).is_ok());
+        let e = with("stage1_of = \"default\"\n").unwrap_err();
+        assert!(e.contains("method `old`") && e.contains("`stage1_of`"), "{e}");
+        let e = with(&format!("{program}stage1_of = \"nope\"\n")).unwrap_err();
+        assert!(e.contains("`nope`") && e.contains("not defined"), "{e}");
+        let e = with(&format!("{program}stage1_of = \"old\"\n")).unwrap_err();
+        assert!(e.contains("another build"), "{e}");
     }
 
     #[test]
