@@ -124,6 +124,13 @@ fn take_stage1(outcome: &mut Outcome, source: &RunRecord) {
     outcome.timing.total += o.timing.stage1 - outcome.timing.stage1;
     outcome.timing.stage1 = o.timing.stage1;
     outcome.stage1 = o.stage1.clone();
+    // As for a run of this build that shares a stage 1: its peak is at least the stage-1
+    // run's, and its CPU time, covering only its own process, makes no share of the total.
+    outcome.peak_rss_mib = match (outcome.peak_rss_mib, o.peak_rss_mib) {
+        (Some(own), Some(stage1)) => Some(own.max(stage1)),
+        (own, stage1) => own.or(stage1),
+    };
+    outcome.cpu_seconds = None;
 }
 
 /// Waits for `child` and reads its resource usage (`wait4`, which reaps it: the only call that
@@ -156,11 +163,24 @@ fn wait_with_usage(child: std::process::Child) -> anyhow::Result<ChildUsage> {
 
 /// The outcome `sos train`'s `metrics.json` describes: held-out colour under `test`, masks
 /// under `stage2.test.segmentation`, phase times under `timing` (the program's total when it
-/// wrote one, else the measured wall time). A value that is missing or not finite is left out,
-/// with a note.
+/// wrote one, else the measured wall time). `sos segment` of older builds writes colour under
+/// `stage2.test.image` and its times as `stage2.train_seconds`, `stage2.masks_seconds` and
+/// `segment_seconds`, read where the first are absent. A value that is missing or not finite
+/// is left out, with a note.
 fn outcome_from_metrics(m: &Json, wall: f64) -> Outcome {
     let mut notes = Vec::new();
-    let number = |path: &[&str]| path.iter().try_fold(m, |v, k| v.get(k)).and_then(Json::as_f64);
+    let at = |path: &[&str]| path.iter().try_fold(m, |v, k| v.get(k)).and_then(Json::as_f64);
+    let number = |path: &[&str]| {
+        let fallback: &[&str] = match path {
+            ["test", "psnr"] => &["stage2", "test", "image", "psnr_of_mean_mse"],
+            ["test", "ssim"] => &["stage2", "test", "image", "mean_ssim"],
+            ["timing", "stage2_seconds"] => &["stage2", "train_seconds"],
+            ["timing", "masks_seconds"] => &["stage2", "masks_seconds"],
+            ["timing", "total_seconds"] => &["segment_seconds"],
+            _ => &[],
+        };
+        at(path).or_else(|| (!fallback.is_empty()).then(|| at(fallback)).flatten())
+    };
     let mut metric = |name: &str, path: &[&str]| match number(path) {
         Some(v) if v.is_finite() => Some(v),
         Some(v) => {
@@ -206,6 +226,23 @@ mod tests {
         assert_eq!(o.timing.setup, 5.0);
         assert_eq!(o.stage2_steps, Some(100));
         assert!(o.notes.is_empty());
+    }
+
+    #[test]
+    fn an_older_builds_segment_metrics_are_read_where_it_writes_them() {
+        let m: Json = serde_json::json!({
+            "segment_seconds": 2680.9,
+            "stage2": {
+                "steps": 100, "train_seconds": 2548.6, "masks_seconds": 121.3,
+                "test": { "image": { "psnr_of_mean_mse": 22.54, "mean_ssim": 0.72 },
+                          "segmentation": { "mean_ari": 0.93, "iou_fg": 0.92, "iou_bg": 0.98, "miou": 0.95 } }
+            }
+        });
+        let o = outcome_from_metrics(&m, 2700.0);
+        assert_eq!((o.metrics.psnr, o.metrics.ssim, o.metrics.miou), (Some(22.54), Some(0.72), Some(0.95)));
+        assert_eq!((o.timing.stage1, o.timing.stage2, o.timing.masks, o.timing.total), (0.0, 2548.6, 121.3, 2680.9));
+        assert!((o.timing.setup - 11.0).abs() < 1e-9, "{}", o.timing.setup);
+        assert_eq!(o.stage2_steps, Some(100));
     }
 
     #[test]
