@@ -464,6 +464,16 @@ fn another_builds_stage_two_starts_from_this_builds_stage_one_and_a_rerun_from_i
     assert!(
         work.join("tiny__default__s0/checkpoint.bin").is_file() && !work.join("tiny__default__s0.previous").exists()
     );
+    // A method added later shares the stage 1 of a result kept from before, though its id
+    // comes first.
+    let added = "[methods.aa-short]\nset = { \"segment.steps\" = 2 }\n[profiles.q]\nscenes = [\"tiny\"]\n\
+                 methods = [\"aa-short\", \"default\", \"after\"]\nseeds = [0]\n";
+    write_bench(&dir, &format!("{methods}{added}"));
+    let out = sos(&["bench", "bench.toml", "--profile", "q", "--out", "results/p"], &dir);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert!(text(&out.stdout).contains("1 ran, 2 cached"), "{}", text(&out.stdout));
+    let notes = json(&runs.join("tiny__aa-short__s0.json"))["outcome"]["notes"].to_string();
+    assert!(notes.contains("stage 1 shared with `tiny__default__s0`"), "{notes}");
     // A method the file does not define is refused.
     let out = sos(&["bench", "bench.toml", "--profile", "p", "--rerun", "nope"], &dir);
     assert_eq!(out.status.code(), Some(2));

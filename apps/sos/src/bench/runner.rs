@@ -98,6 +98,17 @@ pub fn run_all(
         .filter(|p| p.extension().is_some_and(|x| x == "json"))
         .filter_map(|p| RunRecord::load(&p).ok())
         .collect();
+    // Finished results this invocation keeps as they are (same config, not rerun): their work
+    // folders hold those very runs, so they can give their stage 1 to any run of the matrix,
+    // also to one that comes before them in the order.
+    let kept: Vec<&RunRecord> = existing
+        .iter()
+        .filter(|r| {
+            r.status == Status::Done
+                && !reuse.rerun.contains(&r.key.method)
+                && runs.iter().any(|p| p.key.id == r.key.id && p.hash == r.hash)
+        })
+        .collect();
 
     let bar = if progress { ProgressBar::new(runs.len() as u64) } else { ProgressBar::hidden() };
     bar.set_style(
@@ -136,15 +147,19 @@ pub fn run_all(
             }
             (copy, note)
         } else {
-            // Only this invocation's records: each is the latest of its id, and its work
-            // folder holds that very run (an older record of a rerun id would not).
+            // This invocation's records and the results it keeps: each is the latest of its
+            // id, and its work folder holds that very run (an older record of a rerun id would
+            // not).
             let previous = if rerun && share_stage1 { set_previous_aside(run, &existing, &work_dir)? } else { None };
             let source = match &run.stage1_of {
                 // Another build's stage 2 starts from this very run, whatever `--own-stage1` says.
                 Some(id) => records.iter().rev().find(|r| &r.key.id == id && r.status == Status::Done),
-                None => previous
-                    .as_ref()
-                    .or_else(|| records.iter().find(|r| share_stage1 && shares_stage1(r, run, &work_dir))),
+                None => previous.as_ref().or_else(|| {
+                    records
+                        .iter()
+                        .chain(kept.iter().copied())
+                        .find(|r| share_stage1 && shares_stage1(r, run, &work_dir))
+                }),
             };
             let program = program_id(run);
             let (mut record, how) = match execute(run, out, curve_points, source) {
@@ -162,6 +177,10 @@ pub fn run_all(
             };
             if let Some(p) = &previous {
                 let _ = std::fs::remove_dir_all(work_dir.join(&p.key.id));
+                // The stage 1 it started from is its own id's: it stays a source for others.
+                if let (Some(o), Some(before)) = (record.outcome.as_mut(), p.outcome.as_ref()) {
+                    o.stage1 = before.stage1.clone();
+                }
             }
             record.wall_seconds = Some(started.elapsed().as_secs_f64());
             record.program = program;
