@@ -216,7 +216,6 @@ pub fn plan(file: &BenchFile, profile: Option<&str>, out: &Path) -> anyhow::Resu
 /// first.
 fn link_stage1_sources(file: &BenchFile, runs: &mut Vec<PlannedRun>) -> anyhow::Result<()> {
     let fpath = file.path.display();
-    let mut dependent = Vec::new();
     for i in 0..runs.len() {
         let key = &runs[i].key;
         let Some(method) = &file.methods[&key.method].stage1_of else { continue };
@@ -243,13 +242,12 @@ fn link_stage1_sources(file: &BenchFile, runs: &mut Vec<PlannedRun>) -> anyhow::
             run.skip = skip.map(|s| format!("the run it starts from, `{id}`, is skipped: {s}"));
         }
         run.stage1_of = Some(id);
-        dependent.push(i);
     }
     // A stable partition: the order within each part stays the id order.
     let (mut later, mut first): (Vec<_>, Vec<_>) =
-        std::mem::take(runs).into_iter().enumerate().partition(|(i, _)| dependent.contains(i));
+        std::mem::take(runs).into_iter().partition(|r| r.stage1_of.is_some());
     first.append(&mut later);
-    *runs = first.into_iter().map(|(_, r)| r).collect();
+    *runs = first;
     Ok(())
 }
 

@@ -179,7 +179,7 @@ fn outcome_from_metrics(m: &Json, wall: f64) -> Outcome {
             ["timing", "total_seconds"] => &["segment_seconds"],
             _ => &[],
         };
-        at(path).or_else(|| (!fallback.is_empty()).then(|| at(fallback)).flatten())
+        at(path).or_else(|| at(fallback))
     };
     let mut metric = |name: &str, path: &[&str]| match number(path) {
         Some(v) if v.is_finite() => Some(v),
