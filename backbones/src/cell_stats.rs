@@ -93,9 +93,14 @@ pub struct CellStatsConfig {
     /// min–max normalised saliency map (every patch has a most salient cell); `"fixed"`
     /// squashes it with a fixed scale (a patch of background alone has no salient cell).
     pub saliency_scale: SaliencyScale,
-    /// Whose border a stage-2 patch's saliency is measured against: `"patch"` (default), the
-    /// patch's own border, or `"view"`, the whole view the patch was cut from.
-    pub saliency_background: SaliencyBackground,
+    /// Whose border a stage-2 patch's saliency is measured against: `"patch"`, the patch's own
+    /// border, or `"view"`, the whole view the patch was cut from. Absent: derived from the
+    /// rig, `"view"` when the training views all look one way (their borders show the same
+    /// walls and floor, a steady background) and `"patch"` otherwise (on an orbit the view's
+    /// border crosses other things, and an object part coloured like them would be salient
+    /// nowhere); `"patch"` outside a run.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub saliency_background: Option<SaliencyBackground>,
 }
 
 /// See [`CellStatsConfig::saliency_background`].
@@ -110,6 +115,16 @@ pub enum SaliencyBackground {
     /// a patch of plain background has no salient cell, but an object part coloured like
     /// something on the view's border (a dark base on a dark floor) is not salient anywhere.
     View,
+}
+
+impl SaliencyBackground {
+    /// The name a config gives it, quoted as TOML writes it.
+    pub fn name(self) -> &'static str {
+        match self {
+            SaliencyBackground::Patch => "\"patch\"",
+            SaliencyBackground::View => "\"view\"",
+        }
+    }
 }
 
 /// See [`CellStatsConfig::saliency_scale`].
@@ -138,9 +153,9 @@ impl Default for CellStatsConfig {
             // Measured on the synthetic scene's full pipeline (benchmarks/RESULTS.md):
             // per-image mIoU 0.77 against 0.67 for fixed, same checkpoint and settings.
             saliency_scale: SaliencyScale::PerImage,
-            // The view's border cost the object-centric scenes 0.04-0.2 mIoU for gains on
-            // forward-facing rooms only at a lower weight (benchmarks/RESULTS.md).
-            saliency_background: SaliencyBackground::Patch,
+            // Derived from the rig: the view's border cost object-centric scenes 0.04-0.2 mIoU
+            // and steadied the forward-facing rooms (benchmarks/RESULTS.md).
+            saliency_background: None,
         }
     }
 }
@@ -185,6 +200,12 @@ impl CellStatsConfig {
         self.cell.unwrap_or(DEFAULT_CELL)
     }
 
+    /// Whose border the saliency is measured against: the set or derived one, the patch's own
+    /// outside a run.
+    pub fn saliency_background(&self) -> SaliencyBackground {
+        self.saliency_background.unwrap_or(SaliencyBackground::Patch)
+    }
+
     /// Number of feature channels: 3 + 3 + `orientation_bins` + 1 + 1.
     pub fn channels(&self) -> usize {
         8 + self.orientation_bins
@@ -202,16 +223,26 @@ sos_core::plugin_kind! {
         }
 
         fn derive_for(&mut self, patch: &PatchFacts) -> Vec<DerivedSetting> {
-            if self.cell.is_some() {
-                return Vec::new();
+            let mut derived = Vec::new();
+            if self.cell.is_none() {
+                let cell = (patch.patch_size as usize / CELLS_PER_PATCH).max(2);
+                self.cell = Some(cell);
+                derived.push(DerivedSetting::new(
+                    "extractor.cell",
+                    cell,
+                    format!("{CELLS_PER_PATCH} cells across the {}-ray patch", patch.patch_size),
+                ));
             }
-            let cell = (patch.patch_size as usize / CELLS_PER_PATCH).max(2);
-            self.cell = Some(cell);
-            vec![DerivedSetting::new(
-                "extractor.cell",
-                cell,
-                format!("{CELLS_PER_PATCH} cells across the {}-ray patch", patch.patch_size),
-            )]
+            if self.saliency_background.is_none() {
+                let (background, why) = if patch.views_look_one_way {
+                    (SaliencyBackground::View, "the views look one way: their borders show the same surroundings")
+                } else {
+                    (SaliencyBackground::Patch, "the views look in spread directions: their borders cross other things")
+                };
+                self.saliency_background = Some(background);
+                derived.push(DerivedSetting::new("extractor.saliency_background", background.name(), why));
+            }
+            derived
         }
 
         fn check_for(&self, patch: &PatchFacts) -> Result<(), BuildError> {
@@ -403,7 +434,7 @@ impl FeatureExtractor for CellStats {
             let message = format!("{} views given for {} patches", views.len(), patches.len());
             return Err(ExtractError::new(self.identity(), message));
         }
-        if self.config.saliency_background == SaliencyBackground::Patch {
+        if self.config.saliency_background() == SaliencyBackground::Patch {
             return self.extract(patches);
         }
         Ok(patches.par_iter().zip(views).map(|(p, v)| self.extract_in_view(p, v)).collect())
@@ -424,7 +455,7 @@ impl FeatureExtractor for CellStats {
             c.energy_weight,
             c.saliency_weight,
             c.saliency_scale,
-            c.saliency_background
+            c.saliency_background()
         )
     }
 }
@@ -799,7 +830,7 @@ mod tests {
         let views = [view.clone(), view.clone()];
         let by_patch = extractor();
         assert_eq!(by_patch.extract_in_views(&patches, &views).unwrap(), by_patch.extract(&patches).unwrap());
-        let config = CellStatsConfig { saliency_background: SaliencyBackground::View, ..Default::default() };
+        let config = CellStatsConfig { saliency_background: Some(SaliencyBackground::View), ..Default::default() };
         let by_view = CellStats::new(config).unwrap();
         let in_views = by_view.extract_in_views(&patches, &views).unwrap();
         assert_eq!(in_views[1], by_view.extract_in_view(&patches[1], &view));

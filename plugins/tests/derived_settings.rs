@@ -47,6 +47,21 @@ fn teacher_cells_follow_the_patch_and_set_keys_are_kept() {
 }
 
 #[test]
+fn the_teacher_measures_saliency_against_the_view_only_where_the_views_look_one_way() {
+    let base = "[scene]\nkind = \"synthetic\"\nwidth = 100\nheight = 75\nviews = 4\n";
+    let orbit = session(base);
+    assert_eq!(derived(&orbit, "extractor.saliency_background"), Some("\"patch\""));
+    let forward = session(&format!("{base}rig = \"forward-facing\"\n"));
+    assert_eq!(derived(&forward, "extractor.saliency_background"), Some("\"view\""));
+    assert!(forward.config.to_toml().contains("saliency_background = \"view\""));
+    let set = session(&format!(
+        "{base}rig = \"forward-facing\"\n[extractor]\nkind = \"cell-stats\"\nsaliency_background = \"patch\"\n"
+    ));
+    assert_eq!(derived(&set, "extractor.saliency_background"), None, "a set key is kept");
+    assert!(set.config.to_toml().contains("saliency_background = \"patch\""));
+}
+
+#[test]
 fn without_stage_two_nothing_of_it_is_derived() {
     let s = session("[scene]\nkind = \"synthetic\"\nwidth = 100\nheight = 75\nviews = 4\n[segment]\nsteps = 0\n");
     // The memory budget and the frozen renders' samples serve stage-1 evaluation too; nothing

@@ -6,7 +6,7 @@
 
 /// Bumped whenever a derivation rule or its constants change, so that cached benchmark
 /// results made under the old rules are not reused (`sos bench` hashes it with each run).
-pub const DERIVATION_VERSION: u32 = 4;
+pub const DERIVATION_VERSION: u32 = 5;
 
 use std::fmt;
 use std::path::Path;
@@ -42,13 +42,28 @@ impl fmt::Display for DerivedSetting {
     }
 }
 
-/// What a teacher's settings may follow from: the patches stage 2 shows it.
+/// What a teacher's settings may follow from: the patches stage 2 shows it, and the views they
+/// are cut from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct PatchFacts {
     /// Rays per patch side (the teacher's input image is this many pixels wide).
     pub patch_size: u32,
     /// View pixels between neighbouring rays of a patch.
     pub stride: u32,
+    /// Whether the training views all look one way (a forward-facing rig, see
+    /// [`Scene::shared_view_axis`]): their borders then show the same walls and floor.
+    pub views_look_one_way: bool,
+}
+
+impl PatchFacts {
+    /// The facts of the patches a run's stage 2 cuts from `scene`'s views.
+    pub fn of_run(segment: &crate::config::SegmentConfig, scene: &Scene) -> PatchFacts {
+        PatchFacts {
+            patch_size: segment.patch_size,
+            stride: segment.stride,
+            views_look_one_way: scene.shared_view_axis().is_some(),
+        }
+    }
 }
 
 /// Fills the settings the config leaves to the scene and returns what it chose, the
@@ -84,7 +99,7 @@ pub fn derive_settings(config: &mut RunConfig, config_dir: &Path, scene: &Scene)
             }
         }
     }
-    let patch = PatchFacts { patch_size: seg.patch_size, stride: seg.stride };
+    let patch = PatchFacts::of_run(seg, scene);
     if config.extractor.is_none() {
         config.extractor = defaults::extractor();
     }

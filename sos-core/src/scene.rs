@@ -2,8 +2,12 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::camera::{Camera, Vec3};
+use crate::camera::{dot, normalize, Camera, Vec3};
 use crate::image::{GrayImage, RgbImage};
+
+/// Largest angle (degrees) between a training camera's axis and the mean axis for which the
+/// rig counts as forward-facing (all cameras look one way).
+pub const PARALLEL_AXES_DEG: f32 = 15.0;
 
 /// One posed photograph.
 #[derive(Debug, Clone)]
@@ -229,6 +233,31 @@ impl Scene {
     /// Whether every held-out view has a ground-truth mask.
     pub fn has_test_masks(&self) -> bool {
         !self.test.is_empty() && self.test.iter().all(|&i| self.views[i].mask.is_some())
+    }
+
+    /// The training cameras' mean centre and mean viewing direction (unit), when every
+    /// training axis lies within [`PARALLEL_AXES_DEG`] of that direction: a forward-facing rig,
+    /// whose axes do not meet. `None` for a rig whose cameras look in spread directions.
+    pub fn shared_view_axis(&self) -> Option<(Vec3, Vec3)> {
+        if self.train.is_empty() {
+            return None;
+        }
+        let n = self.train.len() as f32;
+        let mut origin = [0.0; 3];
+        let mut axis = [0.0; 3];
+        for &i in &self.train {
+            let cam = &self.views[i].camera;
+            let (o, f) = (cam.origin(), cam.forward());
+            for k in 0..3 {
+                origin[k] += o[k] / n;
+                axis[k] += f[k];
+            }
+        }
+        let direction = normalize(axis);
+        let cos_max = PARALLEL_AXES_DEG.to_radians().cos();
+        let parallel = direction.iter().all(|v| v.is_finite())
+            && self.train.iter().all(|&i| dot(self.views[i].camera.forward(), direction) >= cos_max);
+        parallel.then_some((origin, direction))
     }
 
     /// Point the cameras look at most: the least-squares intersection of the training cameras'

@@ -8,7 +8,7 @@
 //!   (`origin + direction · depth`, empty rays excluded) lie nearest a focus point (the nearest
 //!   [`FOCUS_VOTE_FRACTION`] of them vote). For object-centric rigs it is
 //!   [`Scene::focus_point`], where the training cameras' axes meet. When every training axis is
-//!   within [`PARALLEL_AXES_DEG`] of their mean (forward-facing rigs), the axes do not meet, so
+//!   within [`crate::scene::PARALLEL_AXES_DEG`] of their mean (forward-facing rigs), the axes do not meet, so
 //!   the focus is instead the point on the mean camera axis (through the mean camera centre)
 //!   at the median rendered depth of the view's central window (sides [`CENTRAL_FRACTION`] of
 //!   the image's): whatever the view is centred on.
@@ -29,7 +29,7 @@
 //! ([`crate::segment::border_split`]). Last, the pixels near the mask's outline go to the side
 //! whose colours they match (`masks.colour_band`, [`crate::segment::colour_refine`]).
 
-use crate::camera::{axpy, dot, normalize, sub, Camera, Vec3};
+use crate::camera::{axpy, dot, sub, Camera, Vec3};
 use crate::config::{ForegroundRule, KeepRegions, LogitSource, MaskConfig, MaskDepth};
 use crate::error::{ConfigError, RunError};
 use crate::image::{GrayImage, RgbImage};
@@ -57,10 +57,6 @@ use crate::train::session::Session;
 /// counts as on the plane, so ground that the rule just missed does not (on the unbounded rig
 /// one band let a shadow in, whose dark pixels render with noisier depth).
 pub const ATTACHED_PART_CLEARANCE: f32 = 2.0;
-
-/// Largest angle (degrees) between a training camera's axis and the mean axis for which the
-/// rig counts as forward-facing in the `focus` rule.
-pub const PARALLEL_AXES_DEG: f32 = 15.0;
 
 /// Side of the central window, as a fraction of the image's sides, whose median depth places
 /// the focus point of forward-facing views.
@@ -295,26 +291,9 @@ pub enum FocusTarget {
 impl FocusTarget {
     /// Chooses the target for a scene (see the module documentation).
     pub fn of_scene(scene: &Scene) -> FocusTarget {
-        let n = scene.train.len().max(1) as f32;
-        let mut origin = [0.0; 3];
-        let mut axis = [0.0; 3];
-        for &i in &scene.train {
-            let cam = &scene.views[i].camera;
-            let (o, f) = (cam.origin(), cam.forward());
-            for k in 0..3 {
-                origin[k] += o[k] / n;
-                axis[k] += f[k];
-            }
-        }
-        let direction = normalize(axis);
-        let cos_max = PARALLEL_AXES_DEG.to_radians().cos();
-        let parallel = !scene.train.is_empty()
-            && direction.iter().all(|v| v.is_finite())
-            && scene.train.iter().all(|&i| dot(scene.views[i].camera.forward(), direction) >= cos_max);
-        if parallel {
-            FocusTarget::Axis { origin, direction }
-        } else {
-            FocusTarget::Point(scene.focus_point())
+        match scene.shared_view_axis() {
+            Some((origin, direction)) => FocusTarget::Axis { origin, direction },
+            None => FocusTarget::Point(scene.focus_point()),
         }
     }
 
@@ -646,6 +625,7 @@ fn no_saliency(session: &Session, why: &str) -> RunError {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::camera::normalize;
     use crate::render::composite::EMPTY_RAY_DEPTH;
 
     #[test]

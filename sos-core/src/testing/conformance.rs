@@ -505,7 +505,7 @@ pub fn check_extractor_kind(kind: &str) {
     let registration =
         find::<dyn FeatureExtractorConfig>(kind).unwrap_or_else(|| panic!("no extractor `{kind}` is registered"));
     let mut config = (registration.default_config)();
-    let patch = crate::derived::PatchFacts { patch_size: 64, stride: 6 };
+    let patch = crate::derived::PatchFacts { patch_size: 64, stride: 6, views_look_one_way: false };
     config.derive_for(&patch);
     if let Err(e) = config.check_for(&patch) {
         panic!("extractor `{kind}`: the settings it derives for 64-ray patches are refused: {e}");

@@ -92,7 +92,7 @@ impl Session {
             .map_err(in_config)?;
         let mut derived = derive_settings(&mut config, config_dir, &scene);
         if let Some(extractor) = config.extractor.as_ref().filter(|_| config.segment.steps > 0) {
-            let patch = PatchFacts { patch_size: config.segment.patch_size, stride: config.segment.stride };
+            let patch = PatchFacts::of_run(&config.segment, &scene);
             extractor.check_for(&patch).map_err(|e| RunError::Plugin {
                 config: source.to_path_buf(),
                 section: "extractor",
