@@ -364,6 +364,28 @@ mod tests {
     }
 
     #[test]
+    fn only_cameras_looking_one_way_share_a_view_axis() {
+        // Cameras on a line, all looking down -z: one axis, through their mean centre.
+        let mut scene = blank_scene(3, 4, 4);
+        for (i, view) in scene.views.iter_mut().enumerate() {
+            let eye = [i as f32 - 1.0, 0.0, 3.0];
+            view.camera = Camera::look_at(eye, [eye[0], 0.0, 0.0], [0.0, 1.0, 0.0], 4, 4, 100.0);
+        }
+        let (origin, direction) = scene.shared_view_axis().expect("parallel cameras");
+        assert!(origin.iter().zip([0.0, 0.0, 3.0]).all(|(a, b)| (a - b).abs() < 1e-5), "{origin:?}");
+        assert!((direction[2] + 1.0).abs() < 1e-5, "{direction:?}");
+        // The same cameras turned to one point 2 in front of them: the outer two look 26.6°
+        // off the mean axis, past the 15° a shared axis allows.
+        for view in scene.views.iter_mut() {
+            let eye = view.camera.origin();
+            view.camera = Camera::look_at(eye, [0.0, 0.0, 1.0], [0.0, 1.0, 0.0], 4, 4, 100.0);
+        }
+        assert_eq!(scene.shared_view_axis(), None);
+        scene.train.clear();
+        assert_eq!(scene.shared_view_axis(), None, "no training camera, no axis");
+    }
+
+    #[test]
     fn two_views_of_one_name_are_refused() {
         let mut scene = blank_scene(3, 4, 4);
         assert_eq!(scene.validate(), Ok(()));
