@@ -7,11 +7,11 @@
 //! - `focus`: the cluster holding most of the pixels whose rendered 3D points
 //!   (`origin + direction · depth`, empty rays excluded) lie nearest a focus point (the nearest
 //!   [`FOCUS_VOTE_FRACTION`] of them vote). For object-centric rigs it is
-//!   [`Scene::focus_point`], where the training cameras' axes meet. When every training axis is
-//!   within [`crate::scene::PARALLEL_AXES_DEG`] of their mean (forward-facing rigs), the axes do not meet, so
-//!   the focus is instead the point on the mean camera axis (through the mean camera centre)
-//!   at the median rendered depth of the view's central window (sides [`CENTRAL_FRACTION`] of
-//!   the image's): whatever the view is centred on.
+//!   [`Scene::focus_point`], where the training cameras' axes meet. When the training cameras
+//!   share one viewing axis ([`Scene::shared_view_axis`]: a forward-facing rig), the axes do
+//!   not meet, so the focus is instead the point on the mean camera axis (through the mean
+//!   camera centre) at the median rendered depth of the view's central window (sides
+//!   [`CENTRAL_FRACTION`] of the image's): whatever the view is centred on.
 //!
 //! With more than two clusters the foreground is the single chosen cluster.
 //!
