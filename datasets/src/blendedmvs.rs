@@ -306,7 +306,7 @@ fn load_original(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetEr
             };
             let camera = checked_camera(&cam_path, "extrinsic", &pose, &k)?;
             let mask = optional_mask(masks_for(root, s).as_deref(), image.width, image.height)?;
-            Ok((View { name: s.to_string(), camera, image, mask }, cam.depth))
+            Ok((View { name: s.to_string(), camera, image, mask, depth: None }, cam.depth))
         })
         .collect::<Result<_, DatasetError>>()?;
     let min_depth = loaded.iter().map(|l| l.1[0]).fold(f64::INFINITY, f64::min);
@@ -427,7 +427,7 @@ fn load_nsvf(cfg: &BlendedMvsConfig, root: &Path) -> Result<Scene, DatasetError>
             };
             let camera = checked_camera(&pose_path, "camera-to-world matrix", &pose, &intr)?;
             let mask = optional_mask(masks_for(root, s).as_deref(), image.width, image.height)?;
-            Ok((split, View { name: name.to_string(), camera, image, mask }))
+            Ok((split, View { name: name.to_string(), camera, image, mask, depth: None }))
         })
         .collect::<Result<_, DatasetError>>()?;
     let train: Vec<usize> = (0..views.len()).filter(|&i| views[i].0 == 0).collect();

@@ -365,7 +365,7 @@ pub fn load_blender(cfg: &BlenderConfig, root: &Path) -> Result<Scene, DatasetEr
                 Some(p) => Some(load_mask(&p, w, h)?),
                 None => None,
             };
-            Ok((View { name: f.rel.replace(['/', '\\'], "_"), camera, image, mask }, outline))
+            Ok((View { name: f.rel.replace(['/', '\\'], "_"), camera, image, mask, depth: None }, outline))
         })
         .collect::<Result<_, DatasetError>>()?;
     let (views, silhouettes): (Vec<View>, Vec<Silhouette>) = loaded.into_iter().unzip();

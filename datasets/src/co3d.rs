@@ -356,7 +356,7 @@ pub fn load_co3d(cfg: &Co3dConfig, root: &Path) -> Result<Scene, DatasetError> {
                 .and_then(|s| s.to_str())
                 .map(str::to_string)
                 .unwrap_or_else(|| format!("frame{:06}", f.frame_number));
-            Ok(View { name, camera, image, mask })
+            Ok(View { name, camera, image, mask, depth: None })
         })
         .collect::<Result<_, DatasetError>>()?;
     let (train, test) = hold_out_views(root, views.len(), cfg.hold_out_every)?;

@@ -504,7 +504,7 @@ pub fn load_colmap(cfg: &ColmapConfig, root: &Path) -> Result<Scene, DatasetErro
             let mask = optional_mask(mask_path(root, &im.name).as_deref(), image.width, image.height)?;
             let rel = Path::new(&im.name);
             let name = rel.with_extension("").to_string_lossy().replace(['/', '\\'], "_");
-            Ok(View { name, camera, image, mask })
+            Ok(View { name, camera, image, mask, depth: None })
         })
         .collect::<Result<_, DatasetError>>()?;
     let (train, test) = hold_out_views(root, views.len(), cfg.hold_out_every)?;

@@ -411,7 +411,7 @@ pub fn load_llff(cfg: &LlffConfig, root: &Path) -> Result<Scene, DatasetError> {
         let camera = pose::to_camera(p, width as u32, height as u32, focal);
         camera.validate().map_err(|e| invalid(&npy_path, format!("pose of row {i} ({}): {e}", file.display())))?;
         let mask = masks.load(stem(file), width, height)?;
-        views.push(View { name: stem(file).to_string(), camera, image, mask });
+        views.push(View { name: stem(file).to_string(), camera, image, mask, depth: None });
     }
     masks.check_any_used(&views)?;
     let (train, test) = hold_out_views(root, views.len(), cfg.hold_out_every)?;

@@ -159,7 +159,7 @@ fn load_split(files: &SplitFiles) -> Result<Vec<View>, DatasetError> {
             let camera = checked_camera(&pose_path, "camera-to-world matrix", &pose, &intr)?;
             let mask_path = find_with_stem(&files.dir.join("mask"), s);
             let mask = optional_mask(mask_path.as_deref(), image.width, image.height)?;
-            Ok(View { name: s.to_string(), camera, image, mask })
+            Ok(View { name: s.to_string(), camera, image, mask, depth: None })
         })
         .collect()
 }

@@ -20,6 +20,10 @@ pub struct View {
     pub image: RgbImage,
     /// Ground-truth foreground mask (1 = object, 0 = background), same size as `image`.
     pub mask: Option<GrayImage>,
+    /// Ground-truth distance along each pixel-centre ray (unit direction, the scene's frame) to
+    /// the first surface, `f32::INFINITY` where the ray meets none; same size as `image`. Only
+    /// generated scenes know it.
+    pub depth: Option<GrayImage>,
 }
 
 /// Where the scene's content lies, which decides how rays are sampled and how a field

@@ -170,7 +170,8 @@ fn tiny_two_stage_run_writes_masks_and_metrics() {
     let stdout = text(&out.stdout);
     assert!(out.status.success(), "{}\n{}", stdout, text(&out.stderr));
     assert!(started.elapsed().as_secs() < 60, "tiny run took {:?}", started.elapsed());
-    for header in ["ARI", "IoU BG", "IoU FG", "mIoU", "PSNR", "SSIM", "mean"] {
+    // The built-in scene knows its depth: the table measures the geometry too.
+    for header in ["ARI", "IoU BG", "IoU FG", "mIoU", "PSNR", "SSIM", "depth err", "mean"] {
         assert!(stdout.contains(header), "table lacks {header}:\n{stdout}");
     }
 
@@ -195,6 +196,7 @@ fn tiny_two_stage_run_writes_masks_and_metrics() {
             "/stage2/test/segmentation/miou",
             "/stage2/test/image/mean_psnr",
             "/stage2/test/image/mean_ssim",
+            "/stage2/test/depth_error",
             "/timing/stage1_seconds",
             "/timing/stage2_seconds",
             "/timing/masks_seconds",
@@ -206,6 +208,8 @@ fn tiny_two_stage_run_writes_masks_and_metrics() {
     assert_eq!(metrics["stage2"]["steps"], 10);
     assert_eq!(metrics["seeds"]["run"], 3);
     assert_eq!(metrics["stage2"]["test"]["views"].as_array().unwrap().len(), 2);
+    let depth_error = metrics["stage2"]["test"]["depth_error"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&depth_error), "depth error {depth_error}");
 
     // The head was checkpointed: inference alone reproduces the masks exactly.
     let before: Vec<Vec<u8>> = masks.iter().map(|m| std::fs::read(m).unwrap()).collect();

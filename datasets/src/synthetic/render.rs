@@ -1,5 +1,5 @@
-//! Renders the views of a synthetic world: 2x2 supersampled colour, an exact mask from the
-//! pixel-centre ray and the range of content depths along a reference axis per view; and the
+//! Renders the views of a synthetic world: 2x2 supersampled colour, an exact mask and depth
+//! from the pixel-centre ray and the range of content depths along a reference axis per view; and the
 //! capture of a rig, the views with what the scene states about them (`near`, for
 //! forward-facing rigs the extent and render path), the same for the built-in and the random
 //! worlds.
@@ -9,7 +9,7 @@ use sos_core::camera::{dot, sub, Camera, Vec3};
 use sos_core::image::{GrayImage, RgbImage};
 use sos_core::scene::{Scene, SceneExtent, View};
 
-use super::world::Trace;
+use super::world::{Trace, SKY_DISTANCE};
 use super::SyntheticConfig;
 use crate::pose::{self, Pose};
 
@@ -23,6 +23,8 @@ pub struct Rendered {
     pub image: RgbImage,
     /// 1 where the pixel-centre ray hits the foreground object.
     pub mask: GrayImage,
+    /// Distance along the pixel-centre ray to its first surface, `f32::INFINITY` for the sky.
+    pub depth: GrayImage,
     /// Min and max depth of the pixel-centre hits along `depth_axis` from `depth_origin`.
     pub depth_range: [f32; 2],
 }
@@ -32,31 +34,36 @@ pub fn render_view<W: Trace + Sync>(world: &W, cam: &Camera, depth_origin: Vec3,
     let (w, h) = (cam.width as usize, cam.height as usize);
     let mut image = RgbImage::new(w, h);
     let mut mask = GrayImage { width: w, height: h, data: vec![0.0; w * h] };
+    let mut distance = GrayImage { width: w, height: h, data: vec![0.0; w * h] };
     let origin = cam.origin();
     let depth_range = image
         .data
         .par_chunks_mut(w * 3)
         .zip(mask.data.par_chunks_mut(w))
+        .zip(distance.data.par_chunks_mut(w))
         .enumerate()
-        .map(|(row, (rgb_row, mask_row))| {
+        .map(|(row, ((rgb_row, mask_row), distance_row))| {
             let mut range = [f32::INFINITY, f32::NEG_INFINITY];
             for col in 0..w {
                 let subs = SUBSAMPLES.map(|[sx, sy]| cam.direction(col as f32 + sx, row as f32 + sy));
                 rgb_row[col * 3..col * 3 + 3].copy_from_slice(&world.pixel(origin, subs));
                 let (foreground, point) = world.probe(origin, cam.direction(col as f32 + 0.5, row as f32 + 0.5));
                 mask_row[col] = if foreground { 1.0 } else { 0.0 };
+                let to_hit = sub(point, origin);
+                let t = dot(to_hit, to_hit).sqrt();
+                distance_row[col] = if t < 0.5 * SKY_DISTANCE { t } else { f32::INFINITY };
                 let depth = dot(sub(point, depth_origin), depth_axis);
                 range = [range[0].min(depth), range[1].max(depth)];
             }
             range
         })
         .reduce(|| [f32::INFINITY, f32::NEG_INFINITY], |a, b| [a[0].min(b[0]), a[1].max(b[1])]);
-    Rendered { image, mask, depth_range }
+    Rendered { image, mask, depth: distance, depth_range }
 }
 
 /// View `i` of a generated scene, seen by `camera`.
 pub fn view(i: usize, camera: Camera, r: Rendered) -> View {
-    View { name: format!("view_{i:03}"), camera, image: r.image, mask: Some(r.mask) }
+    View { name: format!("view_{i:03}"), camera, image: r.image, mask: Some(r.mask), depth: Some(r.depth) }
 }
 
 /// The views of `cams`, each with depths along its own viewing axis, and the nearest depth of

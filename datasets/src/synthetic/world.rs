@@ -46,6 +46,10 @@ enum Surface {
     Cone,
 }
 
+/// Distance at which a ray that meets no surface (the sky) reports its point: far beyond any
+/// content, and read back as no surface at all by the views' ground-truth depth.
+pub const SKY_DISTANCE: f32 = 1e4;
+
 /// The shaded result of one primary ray.
 #[derive(Debug, Clone, Copy)]
 pub struct Sample {

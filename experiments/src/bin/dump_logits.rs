@@ -1,8 +1,9 @@
 //! Writes what mask inference sees for each held-out view, for studying inference rules
 //! outside the pipeline: `<out>/<view>.bin` holds, for every pixel, the composited logits,
 //! the rendered depth, the rendered 3D point (NaN for empty rays), the ground-truth mask
-//! (−1 where there is none) and the mask `sos` infers (1 foreground, 0 background), as
-//! little-endian f32 rows of `channels + 1 + 3 + 1 + 1` values; `<out>/meta.json` gives the
+//! (−1 where there is none), the mask `sos` infers (1 foreground, 0 background) and the
+//! ground-truth depth (NaN where there is none), as little-endian f32 rows of
+//! `channels + 1 + 3 + 1 + 1 + 1` values; `<out>/meta.json` gives the
 //! sizes, the focus point, the camera centre and the channel count.
 //!
 //! `cargo run --release --manifest-path experiments/Cargo.toml --bin dump_logits -- CONFIG CHECKPOINT OUT_DIR`
@@ -31,13 +32,15 @@ fn main() {
         // A second render of the view: the mask keeps its depth and points but not its logits.
         let mask = inference.segment(&view.camera, &view.name).expect("mask");
         let gt = view.mask.as_ref().map(|m| m.resized_nearest(w, h));
-        let mut bytes = Vec::with_capacity(w * h * (r.channels + 6) * 4);
+        let gt_depth = view.depth.as_ref().map(|d| d.resized_nearest(w, h));
+        let mut bytes = Vec::with_capacity(w * h * (r.channels + 7) * 4);
         for p in 0..w * h {
             let mut row: Vec<f32> = r.logits[p * r.channels..(p + 1) * r.channels].to_vec();
             row.push(r.depth[p]);
             row.extend(r.points[p].unwrap_or([f32::NAN; 3]));
             row.push(gt.as_ref().map_or(-1.0, |g| g.data[p]));
             row.push(if mask.foreground[p] { 1.0 } else { 0.0 });
+            row.push(gt_depth.as_ref().map_or(f32::NAN, |d| d.data[p]));
             row.iter().for_each(|v| bytes.extend(v.to_le_bytes()));
         }
         std::fs::write(out.join(format!("{}.bin", view.name)), bytes).expect("write view");

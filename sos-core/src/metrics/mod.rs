@@ -4,15 +4,18 @@
 //! - [`binary_iou`], [`mean_iou`]: the offline script's per-image IoU(BG)/IoU(FG) and their means.
 //! - [`mse`], [`psnr_from_mse`], [`psnr_of_mean_mse`], [`mean_psnr`]: both PSNR conventions.
 //! - [`ssim`], [`ssim_planar`]: the reference's Gaussian-window SSIM.
+//! - [`median_relative_depth_error`]: rendered depth against a ground-truth depth map.
 //! - [`SegmentationReport`], [`ImageQualityReport`]: per-view values, aggregates and a text table.
 
 mod ari;
+mod depth;
 mod iou;
 mod psnr;
 mod report;
 mod ssim;
 
 pub use ari::adjusted_rand_index;
+pub use depth::median_relative_depth_error;
 pub use iou::{binary_iou, binary_iou_gray, mean_iou, BinaryIou, IouSummary};
 pub use psnr::{mean_psnr, mse, psnr_from_mse, psnr_of_mean_mse, PSNR_MSE_FLOOR};
 pub use report::{ImageQualityReport, ImageQualityView, SegmentationReport, SegmentationView};

@@ -8,7 +8,9 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::error::RunError;
-use crate::metrics::{adjusted_rand_index, binary_iou, ImageQualityReport, MetricError, SegmentationReport};
+use crate::metrics::{
+    adjusted_rand_index, binary_iou, median_relative_depth_error, ImageQualityReport, MetricError, SegmentationReport,
+};
 use crate::plugin::dataset::DatasetError;
 use crate::scene::View;
 use crate::segment::infer::{MaskInference, ViewMask};
@@ -34,6 +36,13 @@ pub struct ViewRecord {
     pub psnr: f64,
     /// SSIM of the rendered colour.
     pub ssim: f64,
+    /// Median relative error of the rendered depth against the view's ground-truth depth
+    /// (absent when the view has none).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub depth_error: Option<f64>,
+    /// The same over the pixels of the ground-truth mask's object (absent without a mask).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub object_depth_error: Option<f64>,
     /// Clusters k-means formed.
     pub clusters: usize,
     /// Fraction of pixels predicted foreground.
@@ -52,6 +61,13 @@ pub struct MaskEval {
     pub segmentation: SegmentationReport,
     /// PSNR/SSIM of the rendered colour over all views.
     pub image: ImageQualityReport,
+    /// Mean over the views with a ground-truth depth of their median relative depth error
+    /// (absent when no view has one).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub depth_error: Option<f64>,
+    /// The same over the object's pixels (views with a ground-truth depth and mask).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub object_depth_error: Option<f64>,
     /// [`NO_GROUND_TRUTH`] when no view has a mask.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub note: Option<String>,
@@ -107,6 +123,8 @@ pub fn evaluate_masks(session: &Session, inference: &MaskInference, write: bool)
         views: Vec::new(),
         segmentation: SegmentationReport::new(),
         image: ImageQualityReport::new(),
+        depth_error: None,
+        object_depth_error: None,
         note: None,
         seconds: 0.0,
     };
@@ -121,6 +139,8 @@ pub fn evaluate_masks(session: &Session, inference: &MaskInference, write: bool)
     if out.views.iter().all(|v| v.note.is_some()) {
         out.note = Some(NO_GROUND_TRUTH.into());
     }
+    out.depth_error = mean_of(out.views.iter().map(|v| v.depth_error));
+    out.object_depth_error = mean_of(out.views.iter().map(|v| v.object_depth_error));
     out.seconds = started.elapsed().as_secs_f64();
     Ok(out)
 }
@@ -150,16 +170,20 @@ pub fn measure_view(
         miou: None,
         psnr: quality.psnr,
         ssim: quality.ssim,
+        depth_error: None,
+        object_depth_error: None,
         clusters: mask.clusters,
         foreground_fraction: mask.foreground.iter().filter(|&&f| f).count() as f64 / n as f64,
         note: Some(NO_GROUND_TRUTH.into()),
     };
-    if let Some(gt) = &view.mask {
-        let gt = gt.resized_nearest(mask.rgb.width, mask.rgb.height);
-        let gt: Vec<bool> = gt.data.iter().map(|&v| v >= 0.5).collect();
+    let gt_mask: Option<Vec<bool>> = view
+        .mask
+        .as_ref()
+        .map(|gt| gt.resized_nearest(mask.rgb.width, mask.rgb.height).data.iter().map(|&v| v >= 0.5).collect());
+    if let Some(gt) = &gt_mask {
         // NV-ARI compares with the k-means labels themselves (all clusters), IoU with the mask.
-        let ari = adjusted_rand_index(&gt, &mask.labels).map_err(bad)?;
-        let iou = binary_iou(&gt, &mask.foreground).map_err(bad)?;
+        let ari = adjusted_rand_index(gt, &mask.labels).map_err(bad)?;
+        let iou = binary_iou(gt, &mask.foreground).map_err(bad)?;
         segmentation.push(&view.name, ari, iou);
         record.ari = Some(ari);
         record.iou_bg = iou.bg;
@@ -167,7 +191,22 @@ pub fn measure_view(
         record.miou = iou.miou();
         record.note = None;
     }
+    if let Some(truth) = view.depth.as_ref().filter(|_| !mask.depth.is_empty()) {
+        let truth = truth.resized_nearest(mask.rgb.width, mask.rgb.height);
+        record.depth_error = median_relative_depth_error(&truth.data, &mask.depth).map_err(bad)?;
+        if let Some(gt) = &gt_mask {
+            let (object_truth, object_rendered): (Vec<f32>, Vec<f32>) =
+                truth.data.iter().zip(&mask.depth).zip(gt).filter(|(_, &fg)| fg).map(|(pair, _)| pair).unzip();
+            record.object_depth_error = median_relative_depth_error(&object_truth, &object_rendered).map_err(bad)?;
+        }
+    }
     Ok(record)
+}
+
+/// The mean of the values present, `None` when none is.
+fn mean_of(values: impl Iterator<Item = Option<f64>>) -> Option<f64> {
+    let present: Vec<f64> = values.flatten().collect();
+    (!present.is_empty()).then(|| present.iter().sum::<f64>() / present.len() as f64)
 }
 
 impl MaskEval {
@@ -175,11 +214,13 @@ impl MaskEval {
     /// (segmentation means over the views with ground truth).
     pub fn to_table(&self) -> String {
         let num = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.4}"));
-        let mut rows: Vec<[String; 7]> = self
+        // The depth column only for scenes that know their depth.
+        let depth = self.depth_error.is_some();
+        let mut rows: Vec<Vec<String>> = self
             .views
             .iter()
             .map(|v| {
-                [
+                let mut row = vec![
                     v.view.clone(),
                     v.ari.map_or_else(|| NO_GROUND_TRUTH.to_string(), |a| format!("{a:.4}")),
                     num(v.iou_bg),
@@ -187,11 +228,15 @@ impl MaskEval {
                     num(v.miou),
                     format!("{:.2}", v.psnr),
                     format!("{:.4}", v.ssim),
-                ]
+                ];
+                if depth {
+                    row.extend([num(v.depth_error), num(v.object_depth_error)]);
+                }
+                row
             })
             .collect();
         let iou = self.segmentation.iou();
-        rows.push([
+        let mut mean = vec![
             "mean".into(),
             self.segmentation.mean_ari().map_or_else(|| NO_GROUND_TRUTH.to_string(), |a| format!("{a:.4}")),
             num(iou.iou_bg),
@@ -199,9 +244,16 @@ impl MaskEval {
             num(iou.miou),
             self.image.mean_psnr().map_or_else(|| "-".into(), |p| format!("{p:.2}")),
             num(self.image.mean_ssim()),
-        ]);
-        let header = ["view", "ARI", "IoU BG", "IoU FG", "mIoU", "PSNR", "SSIM"];
-        let mut widths = header.map(str::len);
+        ];
+        if depth {
+            mean.extend([num(self.depth_error), num(self.object_depth_error)]);
+        }
+        rows.push(mean);
+        let mut header = vec!["view", "ARI", "IoU BG", "IoU FG", "mIoU", "PSNR", "SSIM"];
+        if depth {
+            header.extend(["depth err", "object depth err"]);
+        }
+        let mut widths: Vec<usize> = header.iter().map(|h| h.len()).collect();
         for row in &rows {
             for (w, cell) in widths.iter_mut().zip(row) {
                 *w = (*w).max(cell.len());
@@ -220,7 +272,8 @@ impl MaskEval {
             s
         };
         let mut out = line(&header);
-        out.push_str(&line(&widths.map(|w| "-".repeat(w)).iter().map(String::as_str).collect::<Vec<_>>()));
+        let rules: Vec<String> = widths.iter().map(|&w| "-".repeat(w)).collect();
+        out.push_str(&line(&rules.iter().map(String::as_str).collect::<Vec<_>>()));
         for row in &rows {
             out.push_str(&line(&row.iter().map(String::as_str).collect::<Vec<_>>()));
         }

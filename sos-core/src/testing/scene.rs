@@ -12,6 +12,7 @@ pub fn blank_scene(views: usize, width: u32, height: u32) -> Scene {
             camera: Camera::look_at([0.0, 0.0, 3.0 + i as f32], [0.0; 3], [0.0, 1.0, 0.0], width, height, 100.0),
             image: RgbImage::new(width as usize, height as usize),
             mask: None,
+            depth: None,
         })
         .collect::<Vec<_>>();
     Scene {

@@ -235,6 +235,8 @@ fn mask_metrics(eval: &MaskEval, notes: &mut Vec<String>) -> Metrics {
         iou_fg: finite_opt(iou.iou_fg, "IoU FG", notes),
         iou_bg: finite_opt(iou.iou_bg, "IoU BG", notes),
         miou: finite_opt(iou.miou, "mIoU", notes),
+        depth_error: finite_opt(eval.depth_error, "depth error", notes),
+        object_depth_error: finite_opt(eval.object_depth_error, "object depth error", notes),
     }
 }
 

@@ -197,6 +197,8 @@ fn outcome_from_metrics(m: &Json, wall: f64) -> Outcome {
         iou_fg: metric("IoU FG", &seg("iou_fg")),
         iou_bg: metric("IoU BG", &seg("iou_bg")),
         miou: metric("mIoU", &seg("miou")),
+        depth_error: metric("depth error", &["stage2", "test", "depth_error"]),
+        object_depth_error: metric("object depth error", &["stage2", "test", "object_depth_error"]),
     };
     let phase = |key: &str| number(&["timing", key]).filter(|v| v.is_finite() && *v >= 0.0).unwrap_or(0.0);
     let (stage1, stage2, masks) = (phase("stage1_seconds"), phase("stage2_seconds"), phase("masks_seconds"));

@@ -21,6 +21,11 @@ pub enum Status {
     Skipped,
 }
 
+/// The name of [`Metrics::depth_error`] in reports.
+pub const DEPTH_ERROR: &str = "depth err";
+/// The name of [`Metrics::object_depth_error`] in reports.
+pub const OBJECT_DEPTH_ERROR: &str = "object depth err";
+
 /// Held-out metrics; a value that is absent was not measured or not finite.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Metrics {
@@ -36,11 +41,18 @@ pub struct Metrics {
     pub iou_bg: Option<f64>,
     /// Mean IoU over both classes.
     pub miou: Option<f64>,
+    /// Mean over held-out views of the median relative error of the rendered depth, for
+    /// scenes that know their depth (generated ones).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth_error: Option<f64>,
+    /// The same over the pixels of the ground-truth object.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub object_depth_error: Option<f64>,
 }
 
 impl Metrics {
     /// The metrics by name, in report order.
-    pub fn named(&self) -> [(&'static str, Option<f64>); 6] {
+    pub fn named(&self) -> [(&'static str, Option<f64>); 8] {
         [
             ("mIoU", self.miou),
             ("NV-ARI", self.nv_ari),
@@ -48,6 +60,8 @@ impl Metrics {
             ("IoU BG", self.iou_bg),
             ("PSNR", self.psnr),
             ("SSIM", self.ssim),
+            (DEPTH_ERROR, self.depth_error),
+            (OBJECT_DEPTH_ERROR, self.object_depth_error),
         ]
     }
 }

@@ -9,7 +9,7 @@ use anyhow::Context;
 use serde::{Deserialize, Serialize};
 
 use super::plot::{write_chart, Chart, Series};
-use super::record::{RunRecord, Status};
+use super::record::{RunRecord, Status, DEPTH_ERROR, OBJECT_DEPTH_ERROR};
 use super::runner::BenchMeta;
 use super::spread::{self, across_scenes, AcrossScenes};
 use super::target::Target;
@@ -340,7 +340,10 @@ impl Report {
              median of three, kept off the run's time); cores busy is the run's CPU time over its wall time \
              (well below the core count: serial phases, or a machine shared with other work); CPU stolen is \
              the share of the machine's CPU time its hypervisor gave to other guests during the run (above \
-             a few percent, the times are not those of an idle machine).\n",
+             a few percent, the times are not those of an idle machine); depth err, where a scene knows its \
+             depth, is the median over a view's surface pixels of the rendered depth's relative error (capped \
+             at 1; an empty ray counts 1), then the mean over views; object depth err the same over the \
+             ground-truth object's pixels.\n",
             self.counts.iter().map(|(k, v)| format!("{v} {k}")).collect::<Vec<_>>().join(", "),
             self.meta.baseline
         ));
@@ -409,17 +412,22 @@ fn to_target_text(r: &Row) -> String {
 fn table(rows: &[Row], with_problems: bool, with_target: bool) -> String {
     let target_head = if with_target { " to target s |" } else { "" };
     let target_rule = if with_target { "---|" } else { "" };
+    // The depth column only where a run measured it (scenes that know their depth).
+    let with_depth = rows.iter().any(|r| r.metrics.contains_key(DEPTH_ERROR));
+    let (depth_head, depth_rule) = if with_depth { (" depth err | object depth err |", "---|---|") } else { ("", "") };
     let mut md = format!(
-        "| method | seeds | mIoU | NV-ARI | IoU FG | IoU BG | PSNR dB | SSIM | stage 1 s | stage 2 s | stage-2 step s | masks s | total s |{target_head} speed-up | view s | peak MiB | cores busy | CPU stolen |\n\
-         |---|---|---|---|---|---|---|---|---|---|---|---|---|{target_rule}---|---|---|---|---|\n",
+        "| method | seeds | mIoU | NV-ARI | IoU FG | IoU BG | PSNR dB | SSIM |{depth_head} stage 1 s | stage 2 s | stage-2 step s | masks s | total s |{target_head} speed-up | view s | peak MiB | cores busy | CPU stolen |\n\
+         |---|---|---|---|---|---|---|---|{depth_rule}---|---|---|---|---|{target_rule}---|---|---|---|---|\n",
     );
     let mut notes = Vec::new();
     for r in rows {
         let m = |k: &str, d| fmt_stat(r.metrics.get(k), d);
         let s = |k: &str| fmt_stat(r.seconds.get(k), 1);
         let target_cell = if with_target { format!(" {} |", to_target_text(r)) } else { String::new() };
+        let depth_cell =
+            if with_depth { format!(" {} | {} |", m(DEPTH_ERROR, 3), m(OBJECT_DEPTH_ERROR, 3)) } else { String::new() };
         md.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |{target_cell} {} | {} | {} | {} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} |{depth_cell} {} | {} | {} | {} | {} |{target_cell} {} | {} | {} | {} | {} |\n",
             r.variant,
             r.seeds.len(),
             m("mIoU", 3),
@@ -667,6 +675,33 @@ mod tests {
             "finished": "2026-01-01 00:00", "outcome": null, "wall_seconds": wall,
         }))
         .unwrap()
+    }
+
+    fn table_row(variant: &str, metrics: serde_json::Value) -> Row {
+        serde_json::from_value(serde_json::json!({
+            "variant": variant, "method": variant, "sweep": null, "seeds": [0], "metrics": metrics,
+            "seconds": {}, "peak_rss_mib": null, "speedup": null, "problems": [],
+        }))
+        .unwrap()
+    }
+
+    #[test]
+    fn depth_columns_appear_only_where_a_run_measured_depth() {
+        let stat = |mean: f64| serde_json::json!({ "mean": mean, "std": 0.0, "n": 1 });
+        let plain = table_row("a", serde_json::json!({ "mIoU": stat(0.9) }));
+        let md = table(std::slice::from_ref(&plain), false, false);
+        assert!(!md.contains("depth err"), "{md}");
+        let measured = table_row(
+            "b",
+            serde_json::json!({ "mIoU": stat(0.8), "depth err": stat(0.25), "object depth err": stat(0.5) }),
+        );
+        let md = table(&[plain, measured], false, false);
+        let lines: Vec<&str> = md.lines().collect();
+        assert!(lines[0].contains("| SSIM | depth err | object depth err | stage 1 s |"), "{md}");
+        // Every line has the header's cells; the row without depth shows dashes.
+        let cells = |l: &str| l.matches('|').count();
+        assert!(lines[..4].iter().all(|l| cells(l) == cells(lines[0])), "{md}");
+        assert!(lines[2].contains("| - | - |") && lines[3].contains("| 0.250 | 0.500 |"), "{md}");
     }
 
     #[test]

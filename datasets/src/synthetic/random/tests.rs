@@ -1,5 +1,5 @@
-//! Tests of random worlds that need their insides: exact masks, distractors that never reach
-//! the mask, extents that hold the content.
+//! Tests of random worlds that need their insides: exact masks and depths, distractors that
+//! never reach the mask, extents that hold the content.
 
 use sos_core::camera::{axpy, dot, sub, Camera, Vec3};
 
@@ -23,7 +23,16 @@ fn first_hit_is_foreground(world: &RandomWorld, o: Vec3, d: Vec3) -> (bool, f32)
     }
     let t_env = match &world.environment {
         Environment::Room { min, max, .. } => room_exit(o, d, *min, *max).0,
-        Environment::Open { .. } if d[1] < 0.0 => -o[1] / d[1],
+        // The ground is a disc: past its rim the ray meets the sky.
+        Environment::Open { radius, .. } if d[1] < 0.0 => {
+            let t = -o[1] / d[1];
+            let p = axpy(o, t, d);
+            if p[0] * p[0] + p[2] * p[2] < radius * radius {
+                t
+            } else {
+                f32::INFINITY
+            }
+        }
         Environment::Open { .. } => f32::INFINITY,
     };
     if t_env < best.1 {
@@ -42,7 +51,7 @@ fn centre_ray(cam: &Camera, col: usize, row: usize) -> (Vec3, Vec3) {
 }
 
 #[test]
-fn masks_are_one_exactly_where_the_first_hit_is_foreground() {
+fn masks_and_depths_follow_the_first_hit() {
     for (seed, rig) in (0..10).map(|s| (s, RIGS[s as usize % RIGS.len()])) {
         let bp = small(seed, rig);
         let mut foreground = 0;
@@ -54,6 +63,13 @@ fn masks_are_one_exactly_where_the_first_hit_is_foreground() {
                     let (fg, t) = first_hit_is_foreground(&bp.world, o, d);
                     let m = r.mask.data[row * 64 + col];
                     assert_eq!(m == 1.0, fg, "seed {seed} {rig:?}: pixel ({col}, {row})");
+                    // The ground-truth depth is the first hit's distance, infinite for the sky.
+                    let depth = r.depth.data[row * 64 + col];
+                    if t.is_finite() {
+                        assert!((depth - t).abs() <= 1e-3 * t.max(1.0), "seed {seed}: depth {depth} vs hit at {t}");
+                    } else {
+                        assert_eq!(depth, f32::INFINITY, "seed {seed}: the sky has no depth");
+                    }
                     if fg {
                         foreground += 1;
                         // The hit lies on a foreground surface.

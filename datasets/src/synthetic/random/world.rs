@@ -9,7 +9,7 @@ use super::super::geometry::{room_exit, Hit, T_MIN};
 use super::super::material::Material;
 use super::super::shape::{may_hit, Shape};
 use super::super::texture::Rgb;
-use super::super::world::{shade, Sample, Trace};
+use super::super::world::{shade, Sample, Trace, SKY_DISTANCE};
 use super::environment::Environment;
 
 /// One primitive of the world.
@@ -144,7 +144,7 @@ impl Trace for RandomWorld {
     fn trace(&self, o: Vec3, d: Vec3) -> Sample {
         let (t, n, surface) = self.first_hit(o, d);
         if surface == Surface::Sky {
-            return Sample { rgb: self.sky(d), foreground: false, point: axpy(o, 1e4, d) };
+            return Sample { rgb: self.sky(d), foreground: false, point: axpy(o, SKY_DISTANCE, d) };
         }
         let p = axpy(o, t, d);
         Sample { rgb: self.shade(p, n, self.albedo(surface, p)), foreground: self.is_foreground(surface), point: p }
@@ -153,7 +153,7 @@ impl Trace for RandomWorld {
     fn probe(&self, o: Vec3, d: Vec3) -> (bool, Vec3) {
         let (t, _, surface) = self.first_hit(o, d);
         if surface == Surface::Sky {
-            return (false, axpy(o, 1e4, d));
+            return (false, axpy(o, SKY_DISTANCE, d));
         }
         (self.is_foreground(surface), axpy(o, t, d))
     }
