@@ -184,6 +184,7 @@ fn tiny_two_stage_run_writes_masks_and_metrics() {
         assert!(run.join("overlays").join(name).is_file(), "no overlay for {name:?}");
         assert!(run.join("test").join(name).is_file(), "no rendered view for {name:?}");
         assert!(run.join("mask_evidence").join(name).is_file(), "no mask evidence for {name:?}");
+        assert!(run.join("depth").join(name).is_file(), "no rendered depth for {name:?}");
         let bytes = std::fs::read(m).unwrap();
         assert_eq!(&bytes[1..4], b"PNG");
     }

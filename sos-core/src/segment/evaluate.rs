@@ -83,6 +83,8 @@ pub const OVERLAYS_DIR: &str = "overlays";
 pub const TEST_DIR: &str = "test";
 /// What each held-out view's mask was decided from ([`crate::segment::diagnostics`]).
 pub const EVIDENCE_DIR: &str = "mask_evidence";
+/// Rendered depth of held-out views ([`ViewMask::depth_image`]).
+pub const DEPTH_DIR: &str = "depth";
 
 /// Where one view's PNGs go, as folders under the run folder.
 #[derive(Debug, Clone, Copy)]
@@ -95,11 +97,18 @@ pub struct ViewFolders<'a> {
     pub images: Option<&'a str>,
     /// The mask's evidence image, when written (and the mask has one).
     pub evidence: Option<&'a str>,
+    /// The rendered depth, when written (and rendered with the mask).
+    pub depth: Option<&'a str>,
 }
 
 /// The folders of held-out views.
-pub const HELD_OUT_FOLDERS: ViewFolders<'static> =
-    ViewFolders { masks: MASKS_DIR, overlays: OVERLAYS_DIR, images: Some(TEST_DIR), evidence: Some(EVIDENCE_DIR) };
+pub const HELD_OUT_FOLDERS: ViewFolders<'static> = ViewFolders {
+    masks: MASKS_DIR,
+    overlays: OVERLAYS_DIR,
+    images: Some(TEST_DIR),
+    evidence: Some(EVIDENCE_DIR),
+    depth: Some(DEPTH_DIR),
+};
 
 /// Writes `<root>/<folder>/<name>.png` for each folder of `folders`.
 pub fn write_view_pngs(mask: &ViewMask, root: &Path, folders: ViewFolders, name: &str) -> Result<(), RunError> {
@@ -111,6 +120,9 @@ pub fn write_view_pngs(mask: &ViewMask, root: &Path, folders: ViewFolders, name:
     }
     if let (Some(dir), Some(evidence)) = (folders.evidence, &mask.evidence) {
         evidence.save_png(&root.join(dir).join(&file))?;
+    }
+    if let (Some(dir), Some(depth)) = (folders.depth, mask.depth_image()) {
+        depth.save_png(&root.join(dir).join(&file))?;
     }
     Ok(())
 }

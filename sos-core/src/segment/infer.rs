@@ -384,6 +384,25 @@ impl ViewMask {
         }
     }
 
+    /// The rendered depth as an image, `None` when it was not rendered here: inverse depth
+    /// (near bright), stretched between the view's 2nd and 98th percentiles so that every
+    /// view uses its full range whatever its scale; empty rays black.
+    pub fn depth_image(&self) -> Option<GrayImage> {
+        let (w, h) = (self.rgb.width, self.rgb.height);
+        if self.depth.len() != w * h {
+            return None;
+        }
+        let disparity: Vec<Option<f32>> = self.depth.iter().map(|&d| (is_hit(d) && d > 0.0).then(|| 1.0 / d)).collect();
+        let mut sorted: Vec<f32> = disparity.iter().flatten().copied().collect();
+        sorted.sort_by(f32::total_cmp);
+        let at = |q: f32| sorted.get(((sorted.len().saturating_sub(1)) as f32 * q).round() as usize).copied();
+        let (lo, hi) = (at(0.02).unwrap_or(0.0), at(0.98).unwrap_or(1.0));
+        let span = (hi - lo).max(f32::EPSILON);
+        let data =
+            disparity.iter().map(|d| d.map_or(0.0, |d| (0.05 + 0.95 * (d - lo) / span).clamp(0.05, 1.0))).collect();
+        Some(GrayImage { width: w, height: h, data })
+    }
+
     /// The rendered colour, tinted where foreground.
     pub fn overlay(&self) -> RgbImage {
         let mut out = self.rgb.clone();
@@ -627,6 +646,19 @@ mod tests {
     use super::*;
     use crate::camera::normalize;
     use crate::render::composite::EMPTY_RAY_DEPTH;
+
+    #[test]
+    fn the_depth_image_is_bright_near_and_black_where_rays_are_empty() {
+        let mut mask = ViewMask::new(vec![0; 5], 1, 0, RgbImage::new(5, 1));
+        assert!(mask.depth_image().is_none(), "no depth rendered, no image");
+        mask.depth = vec![1.0, 2.0, EMPTY_RAY_DEPTH, 4.0, f32::NAN];
+        let img = mask.depth_image().unwrap();
+        assert_eq!((img.width, img.height), (5, 1));
+        let v = &img.data;
+        assert!(v[0] > v[1] && v[1] > v[3] && v[3] > 0.0, "{v:?}");
+        assert_eq!((v[0], v[3]), (1.0, 0.05), "the extremes span the range");
+        assert_eq!((v[2], v[4]), (0.0, 0.0), "empty and non-finite rays are black");
+    }
 
     #[test]
     fn saliency_picks_the_more_salient_cluster() {

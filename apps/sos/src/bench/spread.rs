@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
-use sos_core::segment::evaluate::{EVIDENCE_DIR, MASKS_DIR, OVERLAYS_DIR};
+use sos_core::segment::evaluate::{DEPTH_DIR, EVIDENCE_DIR, MASKS_DIR, OVERLAYS_DIR};
 
 use super::report::SceneTable;
 
@@ -80,7 +80,7 @@ pub fn markdown(spread: &[AcrossScenes]) -> String {
     }
     let mut md = String::from(
         "\n## Across scenes\n\nPer-scene means, then the mean and the worst over scenes. The worst mIoU scene's \
-         held-out masks, overlays and mask evidence (clusters, support planes, focus voters) are in \
+         held-out masks, overlays, mask evidence (clusters, support planes, focus voters) and rendered depth are in \
          `worst/<method>/` for each method.\n\n\
          | method | scenes | mIoU mean | mIoU worst | NV-ARI mean | NV-ARI worst |\n|---|---|---|---|---|---|\n",
     );
@@ -100,7 +100,7 @@ pub fn markdown(spread: &[AcrossScenes]) -> String {
     md
 }
 
-/// Copies the held-out masks and overlays of each method's worst-mIoU scene (its first seed's
+/// Copies the held-out masks, overlays, mask evidence and rendered depth of each method's worst-mIoU scene (its first seed's
 /// run folder under `work_dir`, found by `run_dir_of(scene, method)`) into
 /// `<out>/worst/<method>/`, replacing what an earlier report put there.
 pub fn copy_worst_masks(
@@ -110,7 +110,7 @@ pub fn copy_worst_masks(
 ) -> anyhow::Result<()> {
     for s in spread {
         let Some(run_dir) = run_dir_of(&s.miou_worst.1, &s.method) else { continue };
-        let images: Vec<(&str, PathBuf)> = [MASKS_DIR, OVERLAYS_DIR, EVIDENCE_DIR]
+        let images: Vec<(&str, PathBuf)> = [MASKS_DIR, OVERLAYS_DIR, EVIDENCE_DIR, DEPTH_DIR]
             .into_iter()
             .flat_map(|sub| {
                 let entries = std::fs::read_dir(run_dir.join(sub)).into_iter().flatten().flatten();

@@ -125,7 +125,7 @@ impl Default for ExportOptions {
 /// Subfolders of the export.
 const FRAMES_DIR: &str = "frames";
 const MASK_FOLDERS: ViewFolders<'static> =
-    ViewFolders { masks: "masks", overlays: "overlays", images: None, evidence: None };
+    ViewFolders { masks: "masks", overlays: "overlays", images: None, evidence: None, depth: None };
 
 /// `sos export`: writes the parts `options` asks for from a run's checkpoint.
 pub fn run(config: &Path, options: &ExportOptions) -> anyhow::Result<()> {

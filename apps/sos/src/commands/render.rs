@@ -79,6 +79,7 @@ pub(super) fn render_camera_path(
                     overlays: "path_overlays",
                     images: Some("path"),
                     evidence: None,
+                    depth: None,
                 };
                 write_view_pngs(&mask, &session.run_dir, folders, &name)?;
             }
