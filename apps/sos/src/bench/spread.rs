@@ -9,6 +9,7 @@ use anyhow::Context;
 use serde::{Deserialize, Serialize};
 use sos_core::segment::evaluate::{DEPTH_DIR, EVIDENCE_DIR, MASKS_DIR, OVERLAYS_DIR};
 
+use super::record::DEPTH_ERROR;
 use super::report::SceneTable;
 
 /// Sub-folder of the report that holds the worst scene's mask images.
@@ -29,6 +30,10 @@ pub struct AcrossScenes {
     pub nv_ari_mean: f64,
     /// Lowest per-scene mean NV-ARI, and its scene.
     pub nv_ari_worst: (f64, String),
+    /// Mean over scenes of the per-scene depth error, and the largest with its scene: only
+    /// when every scene measured it (generated scenes know their depth).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth_error: Option<(f64, (f64, String))>,
 }
 
 /// The spread of every method and sweep point over at least two scenes with mIoU and NV-ARI:
@@ -46,11 +51,14 @@ pub fn across_scenes(tables: &[SceneTable]) -> Vec<AcrossScenes> {
     variants
         .into_iter()
         .filter_map(|(_, method)| {
+            let mut depth: Vec<(&str, Option<f64>)> = Vec::new();
             let per_scene: Vec<(&str, f64, f64)> = tables
                 .iter()
                 .filter_map(|t| {
                     let row = t.rows.iter().find(|r| r.variant == method)?;
-                    Some((t.scene.as_str(), row.metrics.get("mIoU")?.mean, row.metrics.get("NV-ARI")?.mean))
+                    let scene = (t.scene.as_str(), row.metrics.get("mIoU")?.mean, row.metrics.get("NV-ARI")?.mean);
+                    depth.push((t.scene.as_str(), row.metrics.get(DEPTH_ERROR).map(|s| s.mean)));
+                    Some(scene)
                 })
                 .collect();
             if per_scene.len() < 2 {
@@ -68,9 +76,18 @@ pub fn across_scenes(tables: &[SceneTable]) -> Vec<AcrossScenes> {
                 miou_worst: worst(|s| s.1),
                 nv_ari_mean: per_scene.iter().map(|s| s.2).sum::<f64>() / n,
                 nv_ari_worst: worst(|s| s.2),
+                depth_error: depth_spread(&depth),
             })
         })
         .collect()
+}
+
+/// The mean and the largest (with its scene) of the scenes' depth errors, when all have one.
+fn depth_spread(depth: &[(&str, Option<f64>)]) -> Option<(f64, (f64, String))> {
+    let known: Vec<(&str, f64)> = depth.iter().map(|&(scene, d)| Some((scene, d?))).collect::<Option<_>>()?;
+    let largest = known.iter().max_by(|a, b| a.1.total_cmp(&b.1))?;
+    let mean = known.iter().map(|k| k.1).sum::<f64>() / known.len() as f64;
+    Some((mean, (largest.1, largest.0.to_string())))
 }
 
 /// The Markdown section (empty without a method over several scenes).
@@ -81,12 +98,16 @@ pub fn markdown(spread: &[AcrossScenes]) -> String {
     let mut md = String::from(
         "\n## Across scenes\n\nPer-scene means, then the mean and the worst over scenes. The worst mIoU scene's \
          held-out masks, overlays, mask evidence (clusters, support planes, focus voters) and rendered depth are in \
-         `worst/<method>/` for each method.\n\n\
-         | method | scenes | mIoU mean | mIoU worst | NV-ARI mean | NV-ARI worst |\n|---|---|---|---|---|---|\n",
+         `worst/<method>/` for each method.\n\n",
     );
+    // Depth columns where some row measured depth on every scene (a row without shows dashes).
+    let with_depth = spread.iter().any(|s| s.depth_error.is_some());
+    md.push_str("| method | scenes | mIoU mean | mIoU worst | NV-ARI mean | NV-ARI worst |");
+    md.push_str(if with_depth { " depth err mean | depth err largest |\n" } else { "\n" });
+    md.push_str(if with_depth { "|---|---|---|---|---|---|---|---|\n" } else { "|---|---|---|---|---|---|\n" });
     for s in spread {
         md.push_str(&format!(
-            "| {} | {} | {:.3} | {:.3} ({}) | {:.3} | {:.3} ({}) |\n",
+            "| {} | {} | {:.3} | {:.3} ({}) | {:.3} | {:.3} ({}) |",
             s.method,
             s.scenes,
             s.miou_mean,
@@ -96,6 +117,13 @@ pub fn markdown(spread: &[AcrossScenes]) -> String {
             s.nv_ari_worst.0,
             s.nv_ari_worst.1
         ));
+        if with_depth {
+            match &s.depth_error {
+                Some((mean, (largest, scene))) => md.push_str(&format!(" {mean:.3} | {largest:.3} ({scene}) |")),
+                None => md.push_str(" - | - |"),
+            }
+        }
+        md.push('\n');
     }
     md
 }
@@ -191,6 +219,35 @@ mod tests {
         let rows: Vec<(&str, usize)> = spread.iter().map(|s| (s.method.as_str(), s.scenes)).collect();
         assert_eq!(rows, [("default", 2), ("x", 2)]);
         assert!((spread[1].miou_mean - 0.2).abs() < 1e-12 && spread[1].miou_worst == (0.1, "a".into()));
+        assert!(spread.iter().all(|s| s.depth_error.is_none()) && !markdown(&spread).contains("depth err"));
+    }
+
+    #[test]
+    fn depth_errors_spread_only_when_every_scene_measured_one() {
+        let with_depth = |v: &str, miou: f64, depth: Option<f64>| {
+            let mut r = row(v, miou, miou, false);
+            if let Some(d) = depth {
+                r.metrics.insert(DEPTH_ERROR.to_string(), Stat { mean: d, std: 0.0, n: 1 });
+            }
+            r
+        };
+        let tables = vec![
+            SceneTable {
+                scene: "a".into(),
+                rows: vec![with_depth("default", 0.9, Some(0.02)), with_depth("y", 0.9, Some(0.1))],
+            },
+            SceneTable {
+                scene: "b".into(),
+                rows: vec![with_depth("default", 0.5, Some(0.9)), with_depth("y", 0.9, None)],
+            },
+        ];
+        let spread = across_scenes(&tables);
+        let (mean, (largest, scene)) = spread[0].depth_error.clone().unwrap();
+        assert!((mean - 0.46).abs() < 1e-12 && largest == 0.9 && scene == "b", "{spread:?}");
+        assert!(spread[1].depth_error.is_none(), "one scene of `y` has no depth");
+        let md = markdown(&spread);
+        assert!(md.contains("| depth err mean | depth err largest |"), "{md}");
+        assert!(md.contains("| 0.460 | 0.900 (b) |") && md.contains("| y | 2 |") && md.contains(" - | - |"), "{md}");
     }
 
     #[test]
@@ -208,6 +265,7 @@ mod tests {
             miou_worst: (0.7, "b".into()),
             nv_ari_mean: 0.8,
             nv_ari_worst: (0.7, "b".into()),
+            depth_error: None,
         }];
         copy_worst_masks(&root, &spread, |scene, method| Some(root.join(format!("work/{scene}__{method}__s0"))))
             .unwrap();
