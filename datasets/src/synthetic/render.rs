@@ -1,6 +1,6 @@
 //! Renders the views of a synthetic world: 2x2 supersampled colour, an exact mask and depth
-//! from the pixel-centre ray and the range of content depths along a reference axis per view; and the
-//! capture of a rig, the views with what the scene states about them (`near`, for
+//! from the pixel-centre ray and the range of content depths along a reference axis per view;
+//! and the capture of a rig, the views with what the scene states about them (`near`, for
 //! forward-facing rigs the extent and render path), the same for the built-in and the random
 //! worlds.
 

@@ -16,6 +16,7 @@ mod ssim;
 
 pub use ari::adjusted_rand_index;
 pub use depth::median_relative_depth_error;
+pub(crate) use iou::mean_defined;
 pub use iou::{binary_iou, binary_iou_gray, mean_iou, BinaryIou, IouSummary};
 pub use psnr::{mean_psnr, mse, psnr_from_mse, psnr_of_mean_mse, PSNR_MSE_FLOOR};
 pub use report::{ImageQualityReport, ImageQualityView, SegmentationReport, SegmentationView};

@@ -9,7 +9,8 @@ use serde::Serialize;
 
 use crate::error::RunError;
 use crate::metrics::{
-    adjusted_rand_index, binary_iou, median_relative_depth_error, ImageQualityReport, MetricError, SegmentationReport,
+    adjusted_rand_index, binary_iou, mean_defined, median_relative_depth_error, ImageQualityReport, MetricError,
+    SegmentationReport,
 };
 use crate::plugin::dataset::DatasetError;
 use crate::scene::View;
@@ -151,8 +152,8 @@ pub fn evaluate_masks(session: &Session, inference: &MaskInference, write: bool)
     if out.views.iter().all(|v| v.note.is_some()) {
         out.note = Some(NO_GROUND_TRUTH.into());
     }
-    out.depth_error = mean_of(out.views.iter().map(|v| v.depth_error));
-    out.object_depth_error = mean_of(out.views.iter().map(|v| v.object_depth_error));
+    out.depth_error = mean_defined(out.views.iter().map(|v| v.depth_error));
+    out.object_depth_error = mean_defined(out.views.iter().map(|v| v.object_depth_error));
     out.seconds = started.elapsed().as_secs_f64();
     Ok(out)
 }
@@ -213,12 +214,6 @@ pub fn measure_view(
         }
     }
     Ok(record)
-}
-
-/// The mean of the values present, `None` when none is.
-fn mean_of(values: impl Iterator<Item = Option<f64>>) -> Option<f64> {
-    let present: Vec<f64> = values.flatten().collect();
-    (!present.is_empty()).then(|| present.iter().sum::<f64>() / present.len() as f64)
 }
 
 impl MaskEval {

@@ -36,6 +36,9 @@ pub struct AcrossScenes {
     pub depth_error: Option<(f64, (f64, String))>,
 }
 
+/// One scene a row ran on: its name, mIoU, NV-ARI and (where measured) depth error.
+type SceneResult<'a> = (&'a str, f64, f64, Option<f64>);
+
 /// The spread of every method and sweep point over at least two scenes with mIoU and NV-ARI:
 /// methods first, then sweep points, each in the order the tables first list them.
 pub fn across_scenes(tables: &[SceneTable]) -> Vec<AcrossScenes> {
@@ -51,21 +54,19 @@ pub fn across_scenes(tables: &[SceneTable]) -> Vec<AcrossScenes> {
     variants
         .into_iter()
         .filter_map(|(_, method)| {
-            let mut depth: Vec<(&str, Option<f64>)> = Vec::new();
-            let per_scene: Vec<(&str, f64, f64)> = tables
+            let per_scene: Vec<SceneResult> = tables
                 .iter()
                 .filter_map(|t| {
                     let row = t.rows.iter().find(|r| r.variant == method)?;
-                    let scene = (t.scene.as_str(), row.metrics.get("mIoU")?.mean, row.metrics.get("NV-ARI")?.mean);
-                    depth.push((t.scene.as_str(), row.metrics.get(DEPTH_ERROR).map(|s| s.mean)));
-                    Some(scene)
+                    let metric = |name: &str| row.metrics.get(name).map(|s| s.mean);
+                    Some((t.scene.as_str(), metric("mIoU")?, metric("NV-ARI")?, metric(DEPTH_ERROR)))
                 })
                 .collect();
             if per_scene.len() < 2 {
                 return None;
             }
             let n = per_scene.len() as f64;
-            let worst = |pick: fn(&(&str, f64, f64)) -> f64| {
+            let worst = |pick: fn(&SceneResult) -> f64| {
                 let w = per_scene.iter().min_by(|a, b| pick(a).total_cmp(&pick(b))).expect("at least two scenes");
                 (pick(w), w.0.to_string())
             };
@@ -76,15 +77,15 @@ pub fn across_scenes(tables: &[SceneTable]) -> Vec<AcrossScenes> {
                 miou_worst: worst(|s| s.1),
                 nv_ari_mean: per_scene.iter().map(|s| s.2).sum::<f64>() / n,
                 nv_ari_worst: worst(|s| s.2),
-                depth_error: depth_spread(&depth),
+                depth_error: depth_spread(&per_scene),
             })
         })
         .collect()
 }
 
 /// The mean and the largest (with its scene) of the scenes' depth errors, when all have one.
-fn depth_spread(depth: &[(&str, Option<f64>)]) -> Option<(f64, (f64, String))> {
-    let known: Vec<(&str, f64)> = depth.iter().map(|&(scene, d)| Some((scene, d?))).collect::<Option<_>>()?;
+fn depth_spread(per_scene: &[SceneResult]) -> Option<(f64, (f64, String))> {
+    let known: Vec<(&str, f64)> = per_scene.iter().map(|&(scene, _, _, d)| Some((scene, d?))).collect::<Option<_>>()?;
     let largest = known.iter().max_by(|a, b| a.1.total_cmp(&b.1))?;
     let mean = known.iter().map(|k| k.1).sum::<f64>() / known.len() as f64;
     Some((mean, (largest.1, largest.0.to_string())))
@@ -128,9 +129,10 @@ pub fn markdown(spread: &[AcrossScenes]) -> String {
     md
 }
 
-/// Copies the held-out masks, overlays, mask evidence and rendered depth of each method's worst-mIoU scene (its first seed's
-/// run folder under `work_dir`, found by `run_dir_of(scene, method)`) into
-/// `<out>/worst/<method>/`, replacing what an earlier report put there.
+/// Copies the held-out masks, overlays, mask evidence and rendered depth of each method's
+/// worst-mIoU scene (its first seed's run folder under `work_dir`, found by
+/// `run_dir_of(scene, method)`) into `<out>/worst/<method>/`, replacing what an earlier report
+/// put there.
 pub fn copy_worst_masks(
     out: &Path,
     spread: &[AcrossScenes],
